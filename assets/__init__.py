@@ -1,0 +1,1 @@
+"""The built-in asset library: one annotated YAML per asset, with the small mesh files it names (package data)."""

@@ -1,0 +1,110 @@
+"""The one interface every backend implements, and the result of a step.
+
+A backend holds `num_envs` environment *slots*. `load(plans)` puts plans[i] in slot i at its initial state;
+`reset(env_ids, plans)` starts a fresh episode in some slots, optionally with new plans (continuous batching:
+a finished slot is refilled while the others keep running); `step(actions, env_ids, mode)` advances the named
+slots by one control step (`plan.n_substeps` physics steps at `plan.control_hz`) and evaluates the plan's
+predicates. Everything is batched over `env_ids`, and results come back in `env_ids` order.
+
+An episode ends (`done`) on success, at the plan's horizon, on a non-finite action, or when the physics diverged
+(the simulator would otherwise silently restart the state); `end_reason` says which.
+A slot whose episode ended must be reset before it is stepped again (stepping it raises `EpisodeDone`).
+
+Observations follow DESIGN section 4 / xpolicylab: `{"instruction": str, "images": {camera: uint8[H, W, 3]}
+(only the cameras the backend was asked for), "state": {"joint_pos" [14], "joint_vel" [14], "ee_pose" [2, 7],
+"gripper" [2]} (float32), "meta": {"task", "episode", "step", "embodiment", "control_hz"}}`. `meta.episode` is
+the plan's scene seed; the runtime, which numbers episodes, may overwrite it.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Self
+
+import numpy as np
+
+Observation = dict[str, Any]
+
+END_SUCCESS = "success"
+END_HORIZON = "horizon"
+END_NONFINITE = "non_finite_action"
+END_UNSTABLE = "physics_unstable"
+END_REASONS = (END_SUCCESS, END_HORIZON, END_NONFINITE, END_UNSTABLE)
+
+
+class EpisodeDone(RuntimeError):
+    """A slot whose episode has ended was stepped without a reset."""
+
+
+@dataclass
+class StepResult:
+    """One control step of the slots `env_ids`, every field in `env_ids` order (length n).
+
+    `stage_times[i]` maps each stage name to the control step it was first reached (None = not yet): the
+    `EpisodeResult.stage_times` of the episode. `end_reason[i]` is one of END_REASONS once `done[i]`, else
+    None; an episode's `failure_reason` is its end reason unless it succeeded. `clipped[i]` counts the action
+    elements clipped to limits in this step, `clipped_total[i]` in the whole episode.
+    """
+
+    env_ids: np.ndarray
+    obs: list[Observation]
+    success: np.ndarray
+    score: np.ndarray
+    done: np.ndarray
+    steps: np.ndarray
+    stage_times: list[dict[str, int | None]]
+    end_reason: list[str | None]
+    clipped: np.ndarray
+    clipped_total: np.ndarray
+
+
+class Backend(ABC):
+    """A simulator (or robot) that runs plans in `num_envs` slots. Use as a context manager or call close()."""
+
+    name: ClassVar[str]
+
+    @property
+    @abstractmethod
+    def num_envs(self) -> int:
+        """Number of slots (set by `load`)."""
+
+    @abstractmethod
+    def load(self, plans: Sequence[Any]) -> None:
+        """Allocate one slot per plan (slot i runs plans[i]) and put each at its plan's initial state."""
+
+    @abstractmethod
+    def reset(self, env_ids: Sequence[int] | None = None, plans: Sequence[Any] | None = None) -> list[Observation]:
+        """Start new episodes in `env_ids` (all slots when None), first replacing their plans when `plans` (one
+        per id) is given. Returns their first observations."""
+
+    @abstractmethod
+    def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
+             observe: Sequence[int] | None = None) -> StepResult:
+        """Apply actions [n, D] (one row per id, `mode` one of actions.ACTION_MODES) for one control step.
+        Camera images are rendered only for the slots in `observe` (all when None): a policy executing an action
+        chunk looks only when its chunk runs out, and rendering is the dominant cost on a CPU."""
+
+    def prefetch(self, plans: Sequence[Any]) -> None:
+        """A hint: these plans will be loaded soon (the runtime's next queued episodes); a backend may prepare
+        them in the background. Backends with nothing to prepare ignore it."""
+
+    def close(self) -> None:
+        """Release threads, renderers and devices."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def resolve_ids(env_ids: Sequence[int] | None, num_envs: int) -> np.ndarray:
+    """`env_ids` as an int array (all slots when None), checked to be distinct and in range."""
+    ids = np.arange(num_envs) if env_ids is None else np.asarray(env_ids, dtype=np.int64).reshape(-1)
+    if ids.size and (ids.min() < 0 or ids.max() >= num_envs):
+        raise IndexError(f"env_ids {ids.tolist()} out of range for {num_envs} slots")
+    if len(set(ids.tolist())) != ids.size:
+        raise ValueError(f"env_ids {ids.tolist()} repeat a slot")
+    return ids

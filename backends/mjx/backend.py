@@ -1,0 +1,312 @@
+"""The batched MJX backend: the `Backend` interface over `Engine`, with actions, predicates and proprioception
+computed on the device inside the one jitted tick.
+
+Slots and rows. `load(plans)` groups the plans into buckets (`make_buckets`, over every plan the backend knows:
+those given to `preload` and to `load`) and gives each bucket one row per slot that starts in it. A slot is a
+(bucket, row) pair; refilling it with a plan of the same bucket only changes the row's member index, and with a
+plan of another bucket it moves to a row of that bucket that no slot uses. Neither recompiles. A plan the
+backend has never seen, or a bucket without a free row, is an error that names the fix (`preload` the queue).
+
+Per tick and bucket, traced once: joint actions (`joint`, `delta_joint`; per-env `delta` flag) become actuator
+controls with `dojo.backends.actions`; physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
+and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
+backend's `RobotIndex.proprioception`. The `ee` modes need IK with MJX Jacobians and are not wired yet (they
+raise). Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
+environment, so this backend runs `impl='jax'`; the `warp` implementation serves `Engine` (physics, bench).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from .. import actions as A
+from ..base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, EpisodeDone, Observation, StepResult, resolve_ids
+from ..mujoco.kinematics import RobotIndex
+from ..predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
+from ..predicate_state import BODY, SITE, StateIndex, gather_state
+from ..rotations import mat_to_quat
+from .batch import BucketArrays, Engine, Hooks, Tree
+from .bucket import Bucket, make_buckets
+from .cache import choose_impl, enable_compilation_cache
+
+JOINT_MODES = ("joint", "delta_joint")
+
+
+@dataclass(frozen=True)
+class _Program:
+    """A bucket's predicate program: one layout and state index for all members, params per member."""
+
+    layout: ProgramLayout
+    index: StateIndex
+    params: dict[str, np.ndarray]  # [members, ...]
+
+
+def _bucket_program(bucket: Bucket) -> _Program:
+    """Compile every member's program against its own plan and move the indices into the padded model.
+
+    Padding appends slot bodies after everything else, so bodies, sites and joints a program names keep their
+    ids; the extra geoms map to "not tracked". Checked by name, and all members must share layout and index.
+    """
+    padded = bucket.model
+    layouts, indices, params = set(), set(), []
+    for member in bucket.members:
+        source = member.plan.model()
+        compiled = compile_program(member.plan, source)
+        index = compiled.index
+        for kind, ident in zip(index.frame_kind, index.frame_id):
+            obj = {BODY: mujoco.mjtObj.mjOBJ_BODY, SITE: mujoco.mjtObj.mjOBJ_SITE}.get(kind)
+            if obj is not None and mujoco.mj_id2name(source, obj, ident) != mujoco.mj_id2name(padded, obj, ident):
+                raise ValueError(f"bucket {bucket.key}: padding moved frame {ident} of plan {member.plan.hash[:12]}")
+        extra = (index.n_atoms,) * (padded.ngeom - source.ngeom)
+        indices.add(replace(index, geom_atom=index.geom_atom + extra))
+        layouts.add(compiled.layout)
+        params.append(compiled.params)
+    if len(layouts) != 1 or len(indices) != 1:
+        raise ValueError(f"bucket {bucket.key}: members compile to different predicate programs")
+    return _Program(layouts.pop(), indices.pop(), stack_params(params))
+
+
+class _DeviceHooks(Hooks):
+    """Actions, predicates and proprioception inside the tick (see module docstring)."""
+
+    forward = True
+
+    def __init__(self, programs: dict[str, _Program], robots: dict[str, RobotIndex]):
+        self.programs, self.robots = programs, robots
+
+    def init_extra(self, arr: BucketArrays) -> Tree:
+        return init_memory(jnp, self.programs[arr.bucket.key].layout, arr.size)
+
+    def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
+        actions, delta = inputs
+        robot = self.robots[arr.bucket.key]
+        q_now = jnp.where(delta[:, None, None], data.qpos[:, robot.qpos_adr], 0.0)  # absolute rows add 0
+        q, grip, clipped = A.joint_targets(jnp, actions, q_now, robot.limits, delta=True)
+        ctrl = data.ctrl.at[:, robot.actuators].set(A.to_ctrl(jnp, q, grip, robot.limits.max_width))
+        return ctrl, clipped
+
+    def observe(self, arr: BucketArrays, m: Tree, data: Tree, memory: Tree, member: jax.Array, reset: jax.Array,
+                stepping: jax.Array, clipped: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
+        program, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
+        params = {k: jnp.asarray(v)[member] for k, v in program.params.items()}
+        c = data.contact
+        state = gather_state(jnp, program.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
+                             data.site_xmat, data.qpos, c.geom1, c.geom2, c.dist)
+        new_memory, out = program_step(jnp, program.layout, state, params, memory, steps)
+        memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
+                              new_memory, memory)
+        return memory, {"success": out.success, "score": out.score, "stage_step": out.stage_step,
+                        "clipped": clipped, **_proprioception(robot, data)}
+
+
+def _proprioception(robot: RobotIndex, d: Tree) -> dict[str, jax.Array]:
+    """`RobotIndex.proprioception` for a batch of MJX data (float32, [B, ...])."""
+    width = robot.limits.max_width
+    grip = jnp.clip(d.ten_length[:, robot.tendons] / width, 0.0, 1.0)
+    base_r = d.xmat[:, robot.bases].reshape(-1, 2, 3, 3)
+    world_r = d.site_xmat[:, robot.ee_sites].reshape(-1, 2, 3, 3)
+    pos = jnp.einsum("naji,naj->nai", base_r, d.site_xpos[:, robot.ee_sites] - d.xpos[:, robot.bases])
+    quat = mat_to_quat(jnp, jnp.swapaxes(base_r, -1, -2) @ world_r)
+    quat = quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
+    arm_q, arm_v = d.qpos[:, robot.qpos_adr], d.qvel[:, robot.dof_adr]
+    grip_v = d.ten_velocity[:, robot.tendons] / width
+    return {"joint_pos": jnp.concatenate([arm_q, grip[..., None]], -1).reshape(arm_q.shape[0], -1),
+            "joint_vel": jnp.concatenate([arm_v, grip_v[..., None]], -1).reshape(arm_q.shape[0], -1),
+            "ee_pose": jnp.concatenate([pos, quat], -1), "gripper": grip}
+
+
+@dataclass
+class _Slot:
+    plan: Any
+    bucket: int
+    row: int
+    step: int = 0
+    done: bool = False
+    end_reason: str | None = None
+    success: bool = False
+    score: float = 0.0
+    stage_times: dict[str, int | None] = field(default_factory=dict)
+    clipped_total: int = 0
+
+
+class MjxBackend(Backend):
+    """Batched MJX backend (`impl` 'jax'; see module docstring for 'warp'). Images are not rendered yet."""
+
+    name = "mjx"
+
+    def __init__(self, impl: str | None = "jax", cache_dir: str | None = None) -> None:
+        enable_compilation_cache(cache_dir)
+        self.impl = choose_impl(impl)
+        if self.impl != "jax":
+            raise ValueError("the mjx backend evaluates predicates on per-environment contacts: use impl='jax'")
+        self._known: dict[str, Any] = {}
+        self._slots: list[_Slot] = []
+        self._engine: Engine | None = None
+        self._buckets: list[Bucket] = []
+        self._member: dict[str, tuple[int, int]] = {}
+        self._rows: list[list[int | None]] = []  # per bucket: row -> slot
+        self._members: list[np.ndarray] = []
+        self._dim = 0
+
+    @property
+    def num_envs(self) -> int:
+        return len(self._slots)
+
+    def preload(self, plans: Sequence[Any]) -> None:
+        """Make plans known before `load`, so that refilling slots with them later compiles nothing."""
+        self._known.update({p.hash: p for p in plans})
+
+    def load(self, plans: Sequence[Any]) -> None:
+        self.preload(plans)
+        if len({p.embodiment for p in self._known.values()}) > 1:
+            raise ValueError("one backend runs one embodiment (action layout)")
+        every = make_buckets(list(self._known.values()))
+        member = {m.plan.hash: (k, i) for k, b in enumerate(every) for i, m in enumerate(b.members)}
+        used = sorted({member[p.hash][0] for p in plans})
+        renumber = {k: j for j, k in enumerate(used)}
+        self._buckets = [every[k] for k in used]
+        self._member = {h: (renumber[k], i) for h, (k, i) in member.items() if k in renumber}
+        self._rows = [[] for _ in used]
+        self._slots = []
+        for s, plan in enumerate(plans):
+            k, _ = self._member[plan.hash]
+            self._slots.append(_Slot(plan, k, len(self._rows[k])))
+            self._rows[k].append(s)
+        self._members = [np.asarray([self._member[self._slots[s].plan.hash][1] for s in rows], np.int32)
+                         for rows in self._rows]
+        robot = plans[0].robot
+        self._dim = A.action_dim("joint", len(robot["arm_joints"]) // 2)
+        hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
+                             {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets})
+        example = [(np.zeros((len(r), self._dim), np.float32), np.zeros(len(r), bool)) for r in self._rows]
+        self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example)
+        self.reset()
+
+    def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
+        if plan.hash not in self._member:
+            raise ValueError(f"plan {plan.hash[:12]} ({plan.task}) was not given to preload/load; refilling with "
+                             "it would need a new compilation")
+        k, _ = self._member[plan.hash]
+        if k == slot.bucket:
+            return k, slot.row
+        free = [r for r, s in enumerate(self._rows[k]) if s is None]
+        if not free:
+            raise ValueError(f"no free row in bucket {self._buckets[k].key} for plan {plan.hash[:12]}: load started "
+                             f"{len(self._rows[k])} slots in it")
+        return k, free[0]
+
+    def reset(self, env_ids: Sequence[int] | None = None, plans: Sequence[Any] | None = None) -> list[Observation]:
+        ids = resolve_ids(env_ids, self.num_envs)
+        if plans is not None and len(plans) != ids.size:
+            raise ValueError(f"reset got {len(plans)} plans for {ids.size} env_ids")
+        for j, i in enumerate(ids):
+            slot = self._slots[i]
+            if plans is not None:
+                k, row = self._row_for(slot, plans[j])
+                self._rows[slot.bucket][slot.row] = None
+                slot.plan, slot.bucket, slot.row = plans[j], k, row
+                self._rows[k][row] = int(i)
+                self._members[k][row] = self._member[slot.plan.hash][1]
+            self._slots[i] = _Slot(slot.plan, slot.bucket, slot.row)
+        resets = [np.zeros(len(r), bool) for r in self._rows]
+        for i in ids:
+            resets[self._slots[i].bucket][self._slots[i].row] = True
+        outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
+                             [np.zeros((len(r), self._dim), np.float32) for r in self._rows],
+                             [np.zeros(len(r), bool) for r in self._rows])
+        return [self._observation(self._slots[i], outputs) for i in ids]
+
+    def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
+              delta: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+        steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
+                 for rows in self._rows]
+        out = self._engine.tick(self._members, resets, stepping, list(zip(actions, delta)), steps)
+        return jax.device_get(out)
+
+    def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint") -> StepResult:
+        ids = resolve_ids(env_ids, self.num_envs)
+        slots = [self._slots[i] for i in ids]
+        ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
+        if ended:
+            raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
+        if mode not in JOINT_MODES:
+            raise ValueError(f"the mjx backend takes the joint modes {JOINT_MODES}; got {mode!r}")
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (ids.size, self._dim):
+            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {self._dim}), got "
+                             f"{actions.shape}")
+        bad = A.nonfinite(np, actions)
+        rows_a = [np.zeros((len(r), self._dim), np.float32) for r in self._rows]
+        stepping = [np.zeros(len(r), bool) for r in self._rows]
+        delta = [np.full(len(r), mode == "delta_joint") for r in self._rows]
+        for k, slot in enumerate(slots):
+            if not bad[k]:
+                rows_a[slot.bucket][slot.row] = actions[k]
+                stepping[slot.bucket][slot.row] = True
+        outputs = self._tick([np.zeros(len(r), bool) for r in self._rows], stepping, rows_a, delta)
+        clipped = np.zeros(ids.size, np.int32)
+        for k, slot in enumerate(slots):
+            if bad[k]:
+                slot.done, slot.end_reason, slot.success = True, END_NONFINITE, False
+                continue
+            out = {name: v[slot.row] for name, v in outputs[slot.bucket].items()}
+            slot.step += 1
+            clipped[k] = int(out["clipped"])
+            slot.clipped_total += clipped[k]
+            slot.success, slot.score = bool(out["success"]), float(out["score"])
+            names = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout.stage_names
+            slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(names, out["stage_step"])}
+            if slot.success:
+                slot.done, slot.end_reason = True, END_SUCCESS
+            elif slot.step >= slot.plan.horizon:
+                slot.done, slot.end_reason = True, END_HORIZON
+        return StepResult(
+            env_ids=ids, obs=[self._observation(s, outputs) for s in slots],
+            success=np.asarray([s.success for s in slots], bool),
+            score=np.asarray([s.score for s in slots], np.float32),
+            done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
+            stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
+            clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32))
+
+    def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
+        out = outputs[slot.bucket]
+        plan = slot.plan
+        return {
+            "instruction": plan.instruction,
+            "state": {k: np.asarray(out[k][slot.row], np.float32)
+                      for k in ("joint_pos", "joint_vel", "ee_pose", "gripper")},
+            "meta": {"task": plan.task, "episode": plan.seed, "step": slot.step, "embodiment": plan.embodiment,
+                     "control_hz": plan.control_hz},
+        }
+
+    def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
+        """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
+        ids = resolve_ids(env_ids, self.num_envs)
+        out = []
+        for i in ids:
+            slot = self._slots[i]
+            member = self._buckets[slot.bucket].members[self._member[slot.plan.hash][1]]
+            q = np.asarray(self._engine.data[slot.bucket].qpos[slot.row])
+            out.append(to_plan_layout(member.model, member.plan.model(), member.padded.names, q))
+        return np.stack(out) if out else np.zeros((0, 0))
+
+
+def to_plan_layout(padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str], qpos: np.ndarray
+                   ) -> np.ndarray:
+    """A padded model's qpos moved back into the plan's own model layout (for comparison with `mujoco`)."""
+    out = np.zeros(source.nq)
+    for j in range(padded.njnt):
+        name = mujoco.mj_id2name(padded, mujoco.mjtObj.mjOBJ_JOINT, j)
+        src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, names.get(name, name))
+        if src < 0:
+            continue
+        width = {0: 7, 1: 4}.get(int(padded.jnt_type[j]), 1)
+        out[source.jnt_qposadr[src]:source.jnt_qposadr[src] + width] = qpos[padded.jnt_qposadr[j]:][:width]
+    return out

@@ -1,0 +1,47 @@
+"""Process-wide JAX settings of the mjx backend: the persistent compilation cache and the choice of MJX impl.
+
+Compiling one tick of a real scene takes minutes on a CPU and tens of seconds on a GPU; the persistent cache
+turns every later run with the same buckets (same structures, batch sizes and JAX/MJX versions) into a cache
+hit. MJX has two implementations: `jax` (XLA, runs everywhere) and `warp` (MuJoCo Warp kernels, NVIDIA GPUs
+only, several times faster at large batches, see /work/shared/gpu/README.md).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+DEFAULT_CACHE_DIR = Path(os.environ.get("DOJO_JAX_CACHE", Path.home() / ".cache" / "dojo" / "jax"))
+IMPLS = ("jax", "warp")
+
+
+def enable_compilation_cache(path: str | Path | None = None) -> Path:
+    """Cache every compiled program on disk (also the quick ones: a tick is one program per run anyway)."""
+    path = Path(path or DEFAULT_CACHE_DIR)
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def warp_available() -> bool:
+    """MuJoCo Warp is importable and JAX sees an NVIDIA GPU."""
+    try:
+        from mujoco.mjx.warp import WARP_INSTALLED
+    except ImportError:
+        return False
+    return bool(WARP_INSTALLED) and any(d.platform == "gpu" for d in jax.devices())
+
+
+def choose_impl(requested: str | None = None) -> str:
+    """`requested` if given (checked), else `warp` on an NVIDIA GPU with MuJoCo Warp installed, else `jax`."""
+    if requested in (None, "", "auto"):
+        return "warp" if warp_available() else "jax"
+    if requested not in IMPLS:
+        raise ValueError(f"unknown MJX impl {requested!r}; choose one of {IMPLS} or 'auto'")
+    if requested == "warp" and not warp_available():
+        raise RuntimeError("impl 'warp' needs an NVIDIA GPU visible to JAX and the mujoco-warp package")
+    return requested

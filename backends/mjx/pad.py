@@ -1,0 +1,185 @@
+"""Padded scene models: plans of one task whose scenes differ in clutter, lights and textures made structurally equal.
+
+MJX traces one program per model *structure*: every integer and `np.ndarray` field of `mjx.Model` (geom types,
+contype, mesh vertices, texture pixels, name offsets, ...) is static, so two plans of one task in the `random`
+setting (different clutter assets and counts, lighting presets, table textures) would land in different buckets and
+each bucket would be a separate small batch. This module rewrites a group of plans' MJCF so that they share one
+structure, leaving only *values* (poses, sizes, masses, colours, light parameters) to differ per environment:
+
+- clutter: every plan gets the union of the group's clutter slots. A slot is keyed by the static signature of a
+  clutter body (element tags, geom types, collision flags, mesh names; mesh names carry the scale, so the same key
+  means the same vertices). A plan's clutter bodies fill the slots of their key; unused slots hold a copy of the
+  slot's body *parked*: far above the scene, apart from each other, with gravity compensation so they stay put.
+  `geom_type` and `contype` are static, so parking, not per-environment contact flags, is what disables a slot.
+  Plans with different clutter counts therefore share a bucket.
+- lights: padded to the group's largest count with inactive lights (`light_active` is a per-environment value).
+- textures, materials, meshes: every plan's asset section gets the union of the group's 2-D textures, materials
+  and meshes in one canonical order (`geom_matid` and `mat_texid` are values). Skyboxes are left as they are:
+  the renderer draws only one, so plans with different skyboxes stay in different buckets.
+- the model, clutter, light and skybox names are canonical (name offsets are static fields), and so are clutter
+  sites' sizes (`site_size` is static; clutter annotations are never read by a task's program).
+
+The result is one MJCF per plan plus the name map back to the plan's own names; `bucket.py` compiles them and
+groups by the exact structural signature, so anything this module does not equalise simply splits a bucket.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Sequence
+
+from dojo.compiler.plan import Plan
+
+PARK_ORIGIN = (50.0, 50.0, 20.0)
+GRAVCOMP_IN_USE = 1e-9
+"""Gravity compensation of slot bodies in use. MJX's `ngravcomp` (bodies with nonzero gravcomp) is static, so a used
+slot keeps a negligible nonzero value (a 1e-9 fraction of its weight) rather than zero, and parked slots 1."""
+PARK_SPACING = 3.0
+"""Parked slots sit on a row far from the scene, PARK_SPACING metres apart (clutter is far smaller)."""
+_STRUCTURAL_ATTRS = ("type", "contype", "conaffinity", "condim", "group", "priority", "mesh", "hfield", "joint",
+                     "mocap", "childclass", "class")
+_UNIONED_ASSETS = ("texture", "material", "mesh")
+
+
+@dataclass
+class PaddedPlan:
+    """One plan's padded MJCF and how its names map to the plan's own (padded name -> plan name)."""
+
+    plan: Plan
+    xml: str
+    names: dict[str, str] = field(default_factory=dict)
+    parked: list[str] = field(default_factory=list)
+    """Top-level body names of the slots this plan leaves unused."""
+
+
+def _clutter_bodies(plan: Plan, world: ET.Element) -> list[ET.Element]:
+    names = [o["body"] for o in plan.objects.values() if o.get("clutter")]
+    by_name = {b.get("name"): b for b in world.findall("body")}
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise ValueError(f"plan {plan.hash[:12]}: clutter bodies {missing} are not top-level bodies")
+    return [by_name[n] for n in names]
+
+
+def slot_key(body: ET.Element) -> str:
+    """Static signature of a clutter body: what MJX treats as structure, with its own name prefix removed."""
+    prefix = body.get("name", "") + "/"
+    parts: list[str] = []
+    for el in body.iter():
+        attrs = {k: v for k, v in el.attrib.items() if k in _STRUCTURAL_ATTRS}
+        for k in ("joint",):
+            if k in attrs and attrs[k].startswith(prefix):
+                attrs[k] = attrs[k][len(prefix):]
+        parts.append(el.tag + repr(sorted(attrs.items())))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
+
+
+def _rename(body: ET.Element, slot: str) -> dict[str, str]:
+    """Give every named element of a slot body a canonical name (`slot`, `slot/<tag><k>`); return {new: old}.
+
+    Name offsets are static in MJX, so two assets with the same structure but differently named geoms would
+    otherwise not share a bucket.
+    """
+    mapping: dict[str, str] = {}
+    counts: Counter[str] = Counter()
+    for el in body.iter():
+        old = el.get("name")
+        if old is None:
+            continue
+        new = slot if el is body else f"{slot}/{el.tag}{counts[el.tag]}"
+        counts[el.tag] += el is not body
+        el.set("name", new)
+        mapping[new] = old
+    return mapping
+
+
+def _canonical_sites(body: ET.Element, template: ET.Element) -> None:
+    """Give a slot body's sites the template's sizes: `site_size` is static in MJX, and clutter sites (annotations
+    for skills, never read by a task's program) are not worth a bucket each."""
+    for site, ref in zip(body.iter("site"), template.iter("site")):
+        if ref.get("size") is not None:
+            site.set("size", ref.get("size"))
+
+
+def _park(body: ET.Element, index: int) -> None:
+    x, y, z = PARK_ORIGIN
+    body.set("pos", f"{x + PARK_SPACING * index:g} {y:g} {z:g}")
+    body.set("quat", "1 0 0 0")
+    for el in body.iter("body"):
+        el.set("gravcomp", "1")
+
+
+def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
+    """The group's 2-D textures, materials and meshes, one per name, in a canonical order."""
+    seen: dict[tuple[str, str], ET.Element] = {}
+    for root in roots:
+        for el in root.find("asset") or []:
+            if el.tag in _UNIONED_ASSETS and el.get("type") != "skybox":
+                seen.setdefault((el.tag, el.get("name", "")), el)
+    order = {tag: i for i, tag in enumerate(_UNIONED_ASSETS)}
+    return [copy.deepcopy(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
+
+
+def pad_group(plans: Sequence[Plan], name: str) -> list[PaddedPlan]:
+    """Rewrite the MJCF of `plans` (normally one task's plans) so that they share one structure where possible."""
+    roots = [ET.fromstring(p.model_xml) for p in plans]
+    clutter = [_clutter_bodies(p, r.find("worldbody")) for p, r in zip(plans, roots)]
+    keys = [[slot_key(b) for b in bodies] for bodies in clutter]
+    slots: list[tuple[str, ET.Element]] = []  # (key, template body) in canonical order
+    need: Counter[str] = Counter()
+    templates: dict[str, ET.Element] = {}
+    for bodies, ks in zip(clutter, keys):
+        for key, count in Counter(ks).items():
+            need[key] = max(need[key], count)
+        for body, key in zip(bodies, ks):
+            templates.setdefault(key, body)
+    for key in sorted(need):
+        slots += [(key, templates[key])] * need[key]
+    assets = _asset_union(roots)
+    n_lights = max(len(r.find("worldbody").findall("light")) for r in roots)
+
+    out: list[PaddedPlan] = []
+    for plan, root, bodies, ks in zip(plans, roots, clutter, keys):
+        root.set("model", name)
+        world = root.find("worldbody")
+        for body in bodies:
+            world.remove(body)
+        free = {key: [b for b, k in zip(bodies, ks) if k == key] for key in need}
+        padded = PaddedPlan(plan, "")
+        for j, (key, template) in enumerate(slots):
+            slot = f"slot{j}"
+            if free[key]:
+                body = free[key].pop(0)
+                _canonical_sites(body, template)
+                padded.names.update(_rename(body, slot))
+                for el in body.iter("body"):
+                    el.set("gravcomp", repr(float(el.get("gravcomp", 0.0)) or GRAVCOMP_IN_USE))
+            else:
+                body = copy.deepcopy(template)
+                _rename(body, slot)
+                _park(body, j)
+                padded.parked.append(slot)
+            world.append(body)
+        lights = world.findall("light")
+        for k, light in enumerate(lights):
+            light.set("name", f"light{k}")
+        at = list(world).index(lights[-1]) + 1 if lights else 0
+        for k in range(len(lights), n_lights):
+            world.insert(at, ET.Element("light", {"name": f"light{k}", "active": "false"}))
+            at += 1
+        asset = root.find("asset")
+        if asset is None:
+            asset = ET.SubElement(root, "asset")
+        for el in [e for e in asset if e.tag in _UNIONED_ASSETS and e.get("type") != "skybox"]:
+            asset.remove(el)
+        for el in asset.iter("texture"):
+            if el.get("type") == "skybox":
+                el.set("name", "skybox")
+        asset.extend(copy.deepcopy(a) for a in assets)
+        padded.xml = ET.tostring(root, encoding="unicode")
+        out.append(padded)
+    return out

@@ -1,0 +1,1 @@
+"""The CPU reference backend on MuJoCo itself, and MuJoCo's offscreen renderer."""

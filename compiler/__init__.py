@@ -1,0 +1,1 @@
+"""The compiler: spec files -> validated specs -> sampled scenes -> MuJoCo models -> content-addressed plans."""

@@ -1,0 +1,124 @@
+"""Compiling a suite: the protocol's episode list, then one cached plan per episode, and `index.json`.
+
+The episode list follows RoboDojo's protocol: N episodes per task (the suite's `episodes`, 50 by default),
+Generalization tasks split between the standard and random settings (25 + 25 by default), every other task in
+the standard setting, repeated for each evaluation seed. Scene seeds are `eval_seed * 10000 + index`, so the
+episodes of seed 0 are the same whatever other seeds are evaluated.
+
+Plans are stored as `<out>/<task>/<setting>-<scene seed>-<hash16>.json`; a plan whose file already exists is not
+rebuilt, since its name carries the hash of all its inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from .plan import compile_plan, compiler_id, plan_hash
+from .spec_library import Spec, SpecLibrary
+
+SEED_STRIDE = 10_000
+INDEX_FORMAT = "robodojo-plan-index/1"
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode of the protocol: which task, setting and scene, under which evaluation seed."""
+
+    task: str
+    dimension: str
+    setting: str
+    scene_seed: int
+    eval_seed: int
+    index: int
+
+
+def suite_episodes(library: SpecLibrary, suite: Spec, *, seeds: list[int] | None = None,
+                   episodes: int | None = None) -> list[Episode]:
+    """The suite's episodes, in a stable order (task, seed, setting, index)."""
+    seeds = list(seeds if seeds is not None else suite.data.get("seeds", [0]))
+    standard_share = suite.data.get("generalization_split", {}).get("standard", 0.5)
+    out = []
+    for task, entry in library.suite_tasks(suite):
+        count = int(episodes or entry.get("episodes") or suite.data.get("episodes", 50))
+        dimension = task.data["dimension"]
+        if dimension == "generalization":
+            n_standard = round(count * standard_share)
+            split = [("standard", n_standard), ("random", count - n_standard)]
+        else:
+            split = [("standard", count)]
+        for eval_seed in seeds:
+            for setting, n in split:
+                out += [Episode(task.id, dimension, setting, eval_seed * SEED_STRIDE + i, eval_seed, i)
+                        for i in range(n)]
+    return out
+
+
+def plan_path(out: Path, episode: Episode, digest: str) -> Path:
+    return out / episode.task / f"{episode.setting}-{episode.scene_seed}-{digest[:16]}.json"
+
+
+# What forked workers compile from: set before the pool starts, inherited by fork (specs are not re-read).
+_WORKER_STATE: tuple[SpecLibrary, dict[str, Spec], dict[str, list[int]]] | None = None
+
+
+def _compile_one(args: tuple[str, str, int, str]) -> str:
+    task_id, setting, seed, path = args
+    assert _WORKER_STATE is not None
+    library, tasks, demos = _WORKER_STATE
+    compile_plan(library, tasks[task_id], setting, seed, demo_lengths=demos.get(task_id)).save(Path(path))
+    return path
+
+
+@dataclass
+class CompileStats:
+    plans: int
+    compiled: int
+    cached: int
+    index: str
+
+
+def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1, seeds: list[int] | None = None,
+                  episodes: int | None = None, demo_lengths: dict[str, list[int]] | None = None,
+                  progress: Callable[[int, int], None] | None = None) -> CompileStats:
+    """Compile every episode's plan into `out` (reusing existing ones) and write `out/index.json`.
+    `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons."""
+    global _WORKER_STATE
+    out.mkdir(parents=True, exist_ok=True)
+    entries, todo, queued = [], [], set()
+    demos = demo_lengths or {}
+    tasks = {task.id: task for task, _ in library.suite_tasks(suite)}
+    for episode in suite_episodes(library, suite, seeds=seeds, episodes=episodes):
+        digest = plan_hash(library, tasks[episode.task], episode.setting, episode.scene_seed,
+                           demos.get(episode.task))
+        path = plan_path(out, episode, digest)
+        entries.append({**asdict(episode), "hash": digest, "path": str(path.relative_to(out))})
+        if not path.exists() and path not in queued:
+            queued.add(path)
+            todo.append((episode.task, episode.setting, episode.scene_seed, str(path)))
+    _WORKER_STATE = (library, tasks, demos)
+    done = 0
+    if jobs > 1 and len(todo) > 1:
+        context = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+            for _ in pool.map(_compile_one, todo, chunksize=max(1, len(todo) // (4 * jobs))):
+                done += 1
+                if progress:
+                    progress(done, len(todo))
+    else:
+        for item in todo:
+            _compile_one(item)
+            done += 1
+            if progress:
+                progress(done, len(todo))
+    index = out / "index.json"
+    tmp = index.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"format": INDEX_FORMAT, "suite": suite.id, "compiler": compiler_id(),
+                               "plans": entries}, indent=1))
+    os.replace(tmp, index)
+    return CompileStats(plans=len(entries), compiled=len(todo), cached=len(entries) - len(todo), index=str(index))

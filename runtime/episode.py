@@ -1,0 +1,122 @@
+"""One finished evaluation episode: the unit that the results store, scoring and reports exchange.
+
+The runtime builds an `EpisodeResult` when an episode ends and hands it to the store, the progress display and,
+later, to scoring. Validation happens here, once, so that a bad value (a score of 140, a typo in a dimension
+id) is caught when the episode is recorded rather than silently skewing a leaderboard later.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+# The five capability dimensions of RoboDojo, in the order the paper's leaderboard prints them.
+DIMENSIONS: tuple[str, ...] = ("generalization", "precision", "long_horizon", "memory", "open")
+DIMENSION_NAMES: dict[str, str] = {
+    "generalization": "Generalization",
+    "precision": "Precision",
+    "long_horizon": "Long-Horizon",
+    "memory": "Memory",
+    "open": "Open",
+}
+# `public` rows are the leaderboard; `hidden` rows come from a suite's private verification seed set.
+SPLITS: tuple[str, ...] = ("public", "hidden")
+
+
+class EpisodeKey(NamedTuple):
+    """What makes an episode unique inside one run; the store refuses a second row with the same key."""
+
+    plan_hash: str
+    eval_seed: int
+    episode: int
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """The record of one episode, exactly as it is stored (one row per episode).
+
+    `score` is the weighted fraction of score stages reached, 0-100; `stage_times` maps each stage name to the
+    step at which it was first reached, or None if it never was.
+    """
+
+    run_id: str
+    split: str
+    plan_hash: str
+    task: str
+    dimension: str
+    setting: str
+    eval_seed: int
+    episode: int
+    scene_seed: int
+    policy_name: str
+    success: bool
+    score: float
+    steps: int
+    wall_time_s: float
+    policy_meta: dict[str, Any] = field(default_factory=dict)
+    stage_times: dict[str, int | None] = field(default_factory=dict)
+    failure_reason: str | None = None
+    video_path: str | None = None
+
+    def __post_init__(self) -> None:
+        """Validate, and normalise numpy scalars (backends produce them) to plain Python values, so that what is
+        stored, compared and serialised is always the same type."""
+        for name in ("run_id", "plan_hash", "task", "setting", "policy_name"):
+            value = getattr(self, name)
+            if not isinstance(value, str) or not value:
+                raise ValueError(f"EpisodeResult.{name} must be a non-empty string, got {value!r}")
+        if self.split not in SPLITS:
+            raise ValueError(f"EpisodeResult.split must be one of {SPLITS}, got {self.split!r}")
+        if self.dimension not in DIMENSIONS:
+            raise ValueError(f"EpisodeResult.dimension must be one of {DIMENSIONS}, got {self.dimension!r}")
+        for name in ("eval_seed", "episode", "scene_seed", "steps"):
+            self._set(name, _integer(name, getattr(self, name)))
+        if self.episode < 0 or self.steps < 0:
+            raise ValueError("EpisodeResult.episode and .steps must be >= 0")
+        if not isinstance(self.success, (bool, np.bool_)):
+            raise ValueError(f"EpisodeResult.success must be a bool, got {self.success!r}")
+        self._set("success", bool(self.success))
+        self._set("score", _number("score", self.score, 0.0, 100.0))
+        self._set("wall_time_s", _number("wall_time_s", self.wall_time_s, 0.0, math.inf))
+        self._set("stage_times", {
+            stage: None if step is None else _integer(f"stage_times[{stage!r}]", step)
+            for stage, step in self.stage_times.items()
+        })
+        if not all(isinstance(stage, str) for stage in self.stage_times):
+            raise ValueError("EpisodeResult.stage_times keys must be stage names (strings)")
+        try:
+            json.dumps(self.policy_meta, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"EpisodeResult.policy_meta must be JSON data: {exc}") from exc
+        for name in ("failure_reason", "video_path"):
+            if getattr(self, name) is not None and not isinstance(getattr(self, name), str):
+                raise ValueError(f"EpisodeResult.{name} must be a string or None")
+
+    def _set(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)  # the dataclass is frozen; this runs only during construction
+
+    @property
+    def key(self) -> EpisodeKey:
+        return EpisodeKey(self.plan_hash, self.eval_seed, self.episode)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict (used by JSON-lines progress and the report)."""
+        return asdict(self)
+
+
+def _integer(name: str, value: Any) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"EpisodeResult.{name} must be an integer, got {value!r}")
+    return int(value)
+
+
+def _number(name: str, value: Any, low: float, high: float) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"EpisodeResult.{name} must be a number, got {value!r}")
+    if not (math.isfinite(value) and low <= value <= high):
+        raise ValueError(f"EpisodeResult.{name} must be finite and in [{low}, {high}], got {value!r}")
+    return float(value)

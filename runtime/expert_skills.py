@@ -1,0 +1,584 @@
+"""The skill library of the scripted experts: grasp, place, stack, insert, press, push, push_up, handover, home.
+
+A task's `expert:` list (task.schema.json `$defs/skill`) is a short composition of these skills. Each skill is
+a generator that yields *segments*, joint-mode action rows [T, 14] for the next moves, and is resumed only when
+the previous segment has (nearly) been executed, so each move is planned from the state the simulator is in
+then: where the block really is after it was nudged, how the grasped object really sits between the fingers.
+
+Grasps are grounded in the assets' annotations (`grasp`, `rim`, `neck` sites; the collision box when an asset
+has none), targets in placement annotations (`inside`, `hole_1`, `slot`), `top` frames and regions. Motion is
+collision-aware in the simple, robust way scripted demonstrations use: approach from above, descend slowly,
+close, lift clear, transfer above everything in the way, lower, release, back off along the approach;
+orientations tilt forward only when a top-down gripper cannot reach (far baskets, high drops). A place that did
+not land is tried again, a push is measured and corrected. `open`/`close` (articulated fixtures) are not in the
+library yet: no built-in task uses them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from .expert_motion import (
+    ARM_INDEX,
+    CARRY,
+    FAST,
+    JOINT_SPEED,
+    SLOW,
+    ArmPlanner,
+    Pose,
+    limit_joint_speed,
+)
+from .expert_scene import Box, Scene
+
+Segment = np.ndarray
+SkillGen = Iterator[Segment]
+
+APPROACH = 0.08
+"""Height of the pre-grasp and pre-place poses above the final pose (m)."""
+CLEARANCE = 0.035
+"""How far a carried object's bottom stays above everything it passes over (m)."""
+MIN_TRANSFER = 0.15
+"""Lowest TCP height above the table for transfers (m)."""
+PALM = 0.045
+"""How far below the gripper TCP an object's top may be before the palm touches it (m)."""
+FINGERTIP = 0.0166
+"""Fingertips below the TCP (finger length 75 mm from the mount, TCP 58.4 mm from it)."""
+GRIP_STEPS = 12
+RELEASE_STEPS = 8
+SETTLE_STEPS = 4
+PITCHES = (0.0, 0.35, 0.6, 0.85)
+"""Forward tilts of the approach axis tried in turn when a top-down pose is out of reach (rad)."""
+REACH_TOL = 0.004
+PLACE_TRIES = 2
+SETTLE_CHECK = 10
+"""A place that did not land (checked like the predicates) is tried once more from where the object lies."""
+PUSH_POS = 0.008
+PUSH_YAW = 4.0
+"""How close (m, degrees) `push` brings an object to its target frame before it stops correcting."""
+REACH = 0.5
+"""Planar distance from an arm's base within which it grasps and places top-down."""
+
+
+class SkillContext:
+    """Commanded joint targets of both arms, the scene, and the primitives skills are written with."""
+
+    def __init__(self, plan: Any, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        self.plan, self.model, self.data = plan, model, data
+        self.scene = Scene(plan, model, data)
+        self.planner = ArmPlanner(model, plan.robot, plan.control_hz)
+        self.planner.sync(data)
+        self.max_width = float(plan.robot["gripper_max_width"])
+        self.q = self.planner.index.arm_q(data).copy()
+        self.grip = self.planner.index.gripper(data).copy()
+        home = plan.robot["home_qpos"]
+        self.home_q = np.asarray([[home[j] for j in plan.robot["arm_joints"][a * 6:(a + 1) * 6]] for a in range(2)])
+        self.held: dict[int, str] = {}
+        self.pitch = [0.0, 0.0]
+        self.failures: list[str] = []
+
+    # ---- segments ----
+
+    def rows(self, path: list[np.ndarray], grips: list[np.ndarray] | None = None) -> Segment:
+        """Action rows for joint targets `path` [T][2, J] (grippers held unless given per row)."""
+        out = np.empty((len(path), 14), np.float32)
+        for k, q in enumerate(path):
+            grip = self.grip if grips is None else grips[k]
+            out[k] = np.concatenate([q[0], [grip[0]], q[1], [grip[1]]])
+        if path:
+            self.q = path[-1].copy()
+        if grips:
+            self.grip = grips[-1].copy()
+        return out
+
+    def hold(self, steps: int) -> Segment:
+        return self.rows([self.q.copy()] * steps)
+
+    def gripper(self, arm: int, value: float, steps: int) -> Segment:
+        grip = self.grip.copy()
+        grip[arm] = value
+        return self.rows([self.q.copy()] * steps, [grip] * steps)
+
+    def line(self, arm: int, goal: Pose, speed: float, settle: int = SETTLE_STEPS) -> Segment:
+        path = self.planner.line(self.q, arm, goal, speed, seed=self._seed(arm, goal.pos))
+        return self.rows(path + [path[-1]] * settle)
+
+    def joints(self, arm: int, q_goal: np.ndarray) -> Segment:
+        """A joint-space move of one arm (going home: no Cartesian path is needed in free space above)."""
+        goal = self.q.copy()
+        goal[arm] = q_goal
+        return self.rows(limit_joint_speed(self.q, [goal], JOINT_SPEED * self.planner.dt) + [goal] * SETTLE_STEPS)
+
+    def tcp(self, arm: int) -> Pose:
+        return self.planner.fk(self.q, arm)
+
+    def actual_tcp(self, arm: int) -> np.ndarray:
+        return self.data.site_xpos[self.planner.index.ee_sites[arm]].copy()
+
+    # ---- orientations and reach ----
+
+    def reach_dir(self, arm: int, point: np.ndarray) -> np.ndarray:
+        d = point[:2] - self.planner.base_pos[arm, :2]
+        d = d / max(float(np.linalg.norm(d)), 1e-6)
+        return np.array([d[0], d[1], 0.0])
+
+    def natural_axis(self, arm: int, point: np.ndarray) -> np.ndarray:
+        """The finger axis of a top-down grasp with an unrolled wrist: horizontal, across the reach direction."""
+        return np.cross(self.reach_dir(arm, point), [0.0, 0.0, -1.0])
+
+    def orientation(self, arm: int, point: np.ndarray, axis: np.ndarray, pitch: float) -> np.ndarray:
+        """Gripper rotation with the approach axis tilted `pitch` forward from straight down, fingers closing
+        along `axis` (projected perpendicular to the approach)."""
+        u = self.reach_dir(arm, point)
+        approach = math.cos(pitch) * np.array([0.0, 0.0, -1.0]) + math.sin(pitch) * u
+        f = axis - np.dot(axis, approach) * approach
+        f = f / np.linalg.norm(f)
+        return np.column_stack([approach, f, np.cross(approach, f)])
+
+    def reachable(self, arm: int, point: np.ndarray, axis: np.ndarray, prefer: float = 0.0) -> Pose:
+        """The least tilted pose at `point` that the arm reaches, trying the tilt `prefer` first (a carried
+        object keeps the tilt it was grasped with); the closest one if none is exact."""
+        best, best_err = None, np.inf
+        for pitch in [prefer, *(p for p in PITCHES if p > prefer)]:
+            pose = Pose(point.copy(), self.orientation(arm, point, axis, pitch))
+            _, err = self.planner.ik(self._seed(arm, point), arm, pose)
+            if err < REACH_TOL:
+                self.pitch[arm] = pitch
+                return pose
+            if err < best_err:
+                best, best_err = pose, err
+        return best
+
+    def highest(self, arm: int, pose: Pose, low: float, high: float) -> float:
+        """The highest TCP height in [low, high] above `pose`'s point that the arm reaches without changing the
+        gripper's orientation (a carried object then keeps its attitude); `low` if none is reachable."""
+        for z in np.linspace(high, low, 6):
+            _, err = self.planner.ik(self._seed(arm, pose.pos), arm, Pose(np.array([*pose.pos[:2], z]), pose.rot))
+            if err < REACH_TOL:
+                return float(z)
+        return low
+
+    def _seed(self, arm: int, point: np.ndarray) -> np.ndarray:
+        """An IK seed facing the point: home pose with the base joint turned towards it."""
+        seed = self.q.copy()
+        q = self.home_q[arm].copy()
+        u = self.reach_dir(arm, point)
+        base_x = self.planner.base_rot[arm][:, 0]
+        q[0] = math.atan2(base_x[0] * u[1] - base_x[1] * u[0], float(np.dot(base_x[:2], u[:2])))
+        seed[arm] = np.clip(q, self.planner.lo[arm], self.planner.hi[arm])
+        return seed
+
+    def choose_arm(self, arm: str, *points: np.ndarray) -> int:
+        """`left`/`right`, or for `auto` the arm whose base is nearer the farthest of `points`."""
+        if arm != "auto":
+            return ARM_INDEX[arm]
+        far = [max(float(np.linalg.norm(p[:2] - self.planner.base_pos[a, :2])) for p in points) for a in range(2)]
+        return int(np.argmin(far))
+
+    def transfer_height(self, exclude: tuple[str, ...], start: np.ndarray, goal: np.ndarray, below_tcp: float,
+                        container: str | None = None) -> float:
+        """TCP height for moving from `start` to `goal` (world points): the carried part (`below_tcp` under the
+        TCP) clears by CLEARANCE every object within reach of the straight path; a target container counts with
+        its rim (`top` frame), since the object goes in past its handle or lid, not over it."""
+        tops = [self.scene.table_z]
+        for name in self.scene.others(exclude):
+            box = self.scene.box(name)
+            if _distance_to_segment(box.center[:2], start[:2], goal[:2]) > float(np.max(box.half[:2])) + 0.08:
+                continue
+            if name == container and self.scene.has_site(name, "top"):
+                tops.append(float(self.scene.site(name, "top").center[2]))
+            else:
+                tops.append(box.top)
+        return max(self.scene.table_z + MIN_TRANSFER, max(tops) + CLEARANCE + below_tcp)
+
+
+def _distance_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-9), 0.0, 1.0))
+    return float(np.linalg.norm(p - (a + t * ab)))
+
+
+# ---- grasping ----
+
+def grasp_frame(ctx: SkillContext, obj: str) -> tuple[Box, np.ndarray]:
+    """The region to grasp (an annotation box, else the object's box) and the candidate finger axes."""
+    for annotation in ("grasp", "rim", "neck"):
+        if ctx.scene.has_site(obj, annotation):
+            site = ctx.scene.site(obj, annotation)
+            box = ctx.scene.box(obj)
+            if annotation == "rim":
+                return site, np.asarray([site.center - box.center])
+            return Box(site.center, box.rot, np.maximum(site.half, 1e-3)), box.rot[:, :2].T
+    box = ctx.scene.box(obj)
+    return box, box.rot[:, :2].T
+
+
+def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.ndarray) -> tuple[np.ndarray, float]:
+    """The horizontal finger axis to close along and the opening needed: among the object's horizontal axes
+    that fit between the fingers, the one nearest the unrolled wrist (rim grasps close across the rim)."""
+    natural = ctx.natural_axis(arm, region.center)
+    box = ctx.scene.box(obj)
+    best = None
+    for axis in axes:
+        axis = np.array([axis[0], axis[1], 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            continue
+        axis = axis / np.linalg.norm(axis)
+        width = 2.0 * float(np.abs(box.rot.T @ axis) @ box.half) if len(axes) > 1 else 0.01
+        fits = width < ctx.max_width - 0.012
+        key = (fits, abs(float(np.dot(axis, natural))) if fits else -width)
+        if best is None or key > best[0]:
+            best = (key, axis if np.dot(axis, natural) >= 0 else -axis, width)
+    assert best is not None
+    return best[1], best[2]
+
+
+def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
+    """Pick `obj` from above: pre-grasp, open just wide enough, descend, close, lift clear of the table."""
+    for _ in range(attempts):
+        region, axes = grasp_frame(ctx, obj)
+        box = ctx.scene.box(obj)
+        if box.bottom < ctx.scene.table_z - 0.05 or float(np.linalg.norm(
+                box.center[:2] - ctx.planner.base_pos[arm, :2])) > 2.0 * REACH:
+            raise SkillFailed(f"{obj} is off the table or out of reach")
+        start_center = float(box.center[2])
+        axis, width = finger_axis(ctx, arm, obj, region, axes)
+        support = box.bottom  # fingertips just above what the object stands on (flat things: a coin)
+        z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.4 * (box.top - support)))
+        point = np.array([*region.center[:2], z])
+        pose = ctx.reachable(arm, point, axis)
+        opening = min(1.0, (width + 0.03) / ctx.max_width)
+        above = pose.shifted([0.0, 0.0, APPROACH])
+        yield ctx.gripper(arm, opening, 1)
+        yield ctx.line(arm, above, FAST)
+        yield ctx.line(arm, pose, SLOW)
+        yield ctx.gripper(arm, 0.0, GRIP_STEPS)
+        yield ctx.line(arm, pose.shifted([0.0, 0.0, APPROACH]), SLOW)
+        if ctx.scene.box(obj).center[2] > start_center + 0.5 * APPROACH:
+            ctx.held[arm] = obj
+            return
+        yield ctx.gripper(arm, 1.0, RELEASE_STEPS)
+    raise SkillFailed(f"could not grasp {obj}")
+
+
+class SkillFailed(RuntimeError):
+    """A skill gave up (the expert then holds still; the episode ends at its horizon, unsolved)."""
+
+
+def _rotate_z(v: np.ndarray, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+# ---- carrying and putting down ----
+
+def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw_change: float = 0.0,
+             release: bool = True, speed_down: float = SLOW, container: str | None = None) -> SkillGen:
+    """Move the held `obj` so that its box centre reaches `goal_center`: up to a safe height, across, down,
+    then open and retreat. `yaw_change` turns the object about world z on the way (push_t)."""
+    box = ctx.scene.box(obj)
+    tcp = ctx.actual_tcp(arm)
+    offset = box.center - tcp  # where the object sits relative to the TCP, as grasped
+    below = float(tcp[2] - box.bottom)
+    safe = ctx.transfer_height((obj,), box.center, goal_center, below, container)
+    axis = _rotate_z(ctx.tcp(arm).rot[:, 1], yaw_change)  # the object turns with the fingers, by yaw_change
+    axis[2] = 0.0
+    if yaw_change == 0.0 and np.dot(axis, ctx.natural_axis(arm, goal_center)) < 0.0:
+        axis = -axis  # the same grasp turned half round: the wrist stays inside its range
+    offset = _rotate_z(offset, yaw_change)
+    point = goal_center - offset
+    pose = ctx.reachable(arm, point, axis, prefer=ctx.pitch[arm])
+    here = ctx.tcp(arm)
+    under = ctx.scene.highest_top((obj,), goal_center, float(np.max(box.half[:2])))
+    floor = max(pose.pos[2] + 0.02, under + 0.01 + below)
+    if safe > floor:  # no higher than the arm reaches at both ends with the object's attitude unchanged
+        safe = max(floor, min(safe, ctx.highest(arm, here, min(here.pos[2], safe), safe),
+                              ctx.highest(arm, pose, floor, safe)))
+    if here.pos[2] < safe:
+        yield ctx.line(arm, Pose(np.array([*here.pos[:2], safe]), here.rot), CARRY, settle=0)
+    yield ctx.line(arm, Pose(np.array([*pose.pos[:2], max(safe, pose.pos[2])]), pose.rot), CARRY, settle=8)
+    yield ctx.line(arm, pose, speed_down)
+    if release:
+        yield from open_and_retreat(ctx, arm)
+
+
+def open_and_retreat(ctx: SkillContext, arm: int) -> SkillGen:
+    """Let go and back out along the approach axis (straight up for a top-down gripper; a tilted one backs
+    off the object instead of dragging it along between the open fingers)."""
+    yield ctx.gripper(arm, 1.0, RELEASE_STEPS)
+    ctx.held.pop(arm, None)
+    here = ctx.tcp(arm)
+    yield ctx.line(arm, here.shifted(-APPROACH * here.rot[:, 0]), FAST, settle=0)
+
+
+def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarray:
+    """Where the box centre of `obj` goes for `target`: resting on a surface (a region spot, an object's top, a
+    placement annotation) or, for a container, released above its rim at the point of its opening nearest the
+    arm (clear of a handle over the middle, and easiest to reach), to drop in."""
+    box = ctx.scene.box(obj)
+    height = float(np.abs(box.rot[2]) @ box.half)
+    if target in ctx.plan.regions:
+        spot = ctx.scene.region_spot(target, obj, clearance=2.0 * float(np.max(box.half[:2])) + 0.02)
+        return spot + [0.0, 0.0, height + 0.006]
+    if _covers(ctx, obj, target):  # a cover goes over the target, down to the target's own support
+        under = ctx.scene.box(target)
+        return np.array([*under.center[:2], under.bottom + height + 0.004])
+    goal = ctx.scene.target(target)
+    if not goal.container:
+        return goal.point + [0.0, 0.0, height + 0.006]
+    owner = target.split("/", 1)[0]
+    site = ctx.scene.site(owner, target.split("/", 1)[1])
+    size = float(np.max(box.half[:2]))
+    room = np.maximum(site.half[:2] - size - 0.01, 0.0)
+    toward = ctx.planner.base_pos[arm, :2] - site.center[:2]
+    spots = [xy for xy in (site.center[:2] + site.rot[:2, :2] @ (room * [u, v]) for u in np.linspace(-1, 1, 5)
+                           for v in np.linspace(-1, 1, 5))
+             if float(np.dot(xy - site.center[:2], toward)) >= 0.0]  # the near half: never across a handle
+    inside = [ctx.scene.box(n) for n in ctx.scene.others((obj, owner))
+              if np.all(np.abs(site.rot.T @ (ctx.scene.box(n).center - site.center)) <= site.half + 0.02)]
+
+    def key(xy: np.ndarray) -> tuple[bool, float]:
+        free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.01 for b in inside)
+        return (not free, float(np.linalg.norm(xy - ctx.planner.base_pos[arm, :2])))
+
+    xy = min(spots, key=key)
+    rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
+    return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
+
+
+def _covers(ctx: SkillContext, obj: str, target: str) -> bool:
+    """Whether placing `obj` at object `target` means covering it: `obj` has an `inside` space the target fits."""
+    if target not in ctx.plan.objects or not ctx.scene.has_site(obj, "inside"):
+        return False
+    inner, under = ctx.scene.site(obj, "inside"), ctx.scene.box(target)
+    return bool(np.all(under.half < inner.half))
+
+
+def place(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
+    """Pick `obj` and put it at `target`; with `auto`, when no arm reaches both, hand it over (`relay`)."""
+    owner = target.split("/", 1)[0] if "/" in target else None
+    here, goal = ctx.scene.box(obj).center, ctx.scene.target(target).point
+    a = ctx.choose_arm(arm, here, goal)
+    if arm == "auto" and not (_within_reach(ctx, a, here) and _within_reach(ctx, a, goal)):
+        a = ctx.choose_arm("auto", goal)
+        if not _within_reach(ctx, a, here):
+            yield from relay(ctx, 1 - a, obj, a)
+    for _ in range(PLACE_TRIES):
+        yield from free_other_arm(ctx, a)
+        yield from grasp(ctx, a, obj)
+        yield from carry_to(ctx, a, obj, place_center(ctx, a, obj, target), container=owner)
+        yield ctx.hold(SETTLE_CHECK)  # a dropped object has landed before it is judged
+        if placed(ctx, obj, target):
+            return
+        a = ctx.choose_arm(arm, ctx.scene.box(obj).center, goal)
+
+
+def placed(ctx: SkillContext, obj: str, target: str) -> bool:
+    """Whether `obj` ended where `target` asks, the way the task predicates look at it: inside a placement
+    box, over a covered object, or resting at a surface point or in a region."""
+    box = ctx.scene.box(obj)
+    if _covers(ctx, obj, target):
+        inner = ctx.scene.site(obj, "inside")
+        return bool(np.all(np.abs(inner.rot.T @ (ctx.scene.box(target).center - inner.center)) <= inner.half + 0.005))
+    goal = ctx.scene.target(target)
+    if goal.container or target in ctx.plan.regions:
+        owner = ctx.scene.site(*target.split("/", 1)) if goal.container else None
+        rot = owner.rot if owner is not None else np.eye(3)
+        centre = owner.center if owner is not None else goal.point + [0.0, 0.0, 0.15]
+        half = goal.half if owner is not None else goal.half + [0.0, 0.0, 0.15]
+        return bool(np.all(np.abs(rot.T @ (box.center - centre)) <= half + 0.005))
+    return bool(np.linalg.norm(box.center[:2] - goal.point[:2]) < 0.02 and abs(box.bottom - goal.point[2]) < 0.02)
+
+
+def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
+    """Hand `obj` from one arm to the other through the table: the giver sets it down at the free spot
+    between the arms nearest the taker, where both reach it top-down."""
+    yield from free_other_arm(ctx, giver)
+    yield from grasp(ctx, giver, obj)
+    box = ctx.scene.box(obj)
+    size = float(np.max(box.half[:2]))
+    bases = ctx.planner.base_pos[:, :2]
+    spots = [np.array([x, y]) for x in np.linspace(-0.12, 0.12, 7) for y in np.linspace(-0.22, -0.02, 5)]
+    others = [ctx.scene.box(n) for n in ctx.scene.others((obj,))]
+
+    def key(xy: np.ndarray) -> tuple[bool, float]:
+        free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.03 for b in others)
+        return (not free, float(np.linalg.norm(xy - bases[taker])))
+
+    xy = min(spots, key=key)
+    height = float(np.abs(box.rot[2]) @ box.half)
+    yield from carry_to(ctx, giver, obj, np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006]))
+
+
+def stack(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
+    yield from place(ctx, arm, obj, target)
+
+
+def insert(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
+    """Put `obj` into a hole or slot: grasp unless held, align above the opening, lower slowly until the
+    object's bottom is near the opening's bottom, release."""
+    goal = ctx.scene.target(target)
+    a = next((k for k, held in ctx.held.items() if held == obj), None)
+    if a is None:
+        a = ctx.choose_arm(arm, ctx.scene.box(obj).center, goal.point)
+        yield from free_other_arm(ctx, a)
+        yield from grasp(ctx, a, obj)
+    box = ctx.scene.box(obj)
+    height = float(np.abs(box.rot[2]) @ box.half)
+    yield from carry_to(ctx, a, obj, goal.point + [0.0, 0.0, height + 0.004], speed_down=SLOW / 2)
+
+
+def press(ctx: SkillContext, arm: str, obj: str) -> SkillGen:
+    """Press a button's interaction point with the closed fingertips, then come back up."""
+    annotation = "pressed" if ctx.scene.has_site(obj, "pressed") else "top"
+    point = ctx.scene.site(obj, annotation).center
+    a = ctx.choose_arm(arm, point)
+    yield from free_other_arm(ctx, a)
+    yield ctx.gripper(a, 0.0, 4)
+    tcp = point + [0.0, 0.0, FINGERTIP]
+    pose = ctx.reachable(a, tcp, ctx.natural_axis(a, tcp))
+    yield ctx.line(a, pose.shifted([0.0, 0.0, APPROACH]), FAST)
+    yield ctx.line(a, pose.shifted([0.0, 0.0, -0.011]), SLOW / 2, settle=6)
+    yield ctx.line(a, pose.shifted([0.0, 0.0, APPROACH]), FAST)
+
+
+def push_up(ctx: SkillContext, arm: str, obj: str, height: float) -> SkillGen:
+    """Lift the object held (grasping it first if needed) to `height` above the table."""
+    a = next((k for k, held in ctx.held.items() if held == obj), None)
+    if a is None:
+        a = ctx.choose_arm(arm, ctx.scene.box(obj).center)
+        yield from grasp(ctx, a, obj)
+    here = ctx.tcp(a)
+    box = ctx.scene.box(obj)
+    lift = max(0.0, ctx.scene.table_z + height + 0.02 - box.bottom)
+    yield ctx.line(a, here.shifted([0.0, 0.0, lift]), SLOW, settle=10)
+
+
+def push(ctx: SkillContext, arm: str, obj: str, target: str, tries: int = 3) -> SkillGen:
+    """Bring `obj` onto a target frame with its heading (push_T's outcome): grasp it, carry it over, turn it
+    to the target's yaw on the way, set it down; then measure and correct, up to `tries` times in all, until
+    it lies within PUSH_POS / PUSH_YAW of the target (the first long carry is the least precise)."""
+    goal = ctx.scene.site(*target.split("/", 1)) if "/" in target else ctx.scene.box(target)
+    for _ in range(tries):
+        box = ctx.scene.box(obj)
+        ref = ctx.scene.site(obj, "center").center if ctx.scene.has_site(obj, "center") else box.center
+        turn = _wrap(_yaw(goal.rot) - _yaw(box.rot))
+        if np.linalg.norm(ref[:2] - goal.center[:2]) < PUSH_POS and abs(turn) < math.radians(PUSH_YAW):
+            return
+        a = ctx.choose_arm(arm, box.center, goal.center)
+        yield from free_other_arm(ctx, a)
+        yield from grasp(ctx, a, obj)
+        box = ctx.scene.box(obj)
+        ref = ctx.scene.site(obj, "center").center if ctx.scene.has_site(obj, "center") else box.center
+        turn = _wrap(_yaw(goal.rot) - _yaw(box.rot))
+        shift = _rotate_z(box.center - ref, turn)
+        yield from carry_to(ctx, a, obj, np.array([goal.center[0] + shift[0], goal.center[1] + shift[1],
+                                                   box.center[2]]), yaw_change=turn)
+
+
+def handover(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
+    """Bring `obj` to `target` with the arm that reaches the target, the other arm handing it over first when
+    the object lies out of that arm's reach (`place` with `auto` does exactly this)."""
+    yield from place(ctx, "auto", obj, target)
+
+
+def _within_reach(ctx: SkillContext, arm: int, point: np.ndarray) -> bool:
+    """Whether `arm` reaches `point` with a top-down gripper near the table (measured: about 0.5 m)."""
+    return float(np.linalg.norm(point[:2] - ctx.planner.base_pos[arm, :2])) < REACH
+
+
+def home(ctx: SkillContext) -> SkillGen:
+    for a in range(2):
+        yield from retreat(ctx, a)
+    q = ctx.home_q
+    goal = ctx.q.copy()
+    goal[:] = q
+    path = limit_joint_speed(ctx.q, [goal], JOINT_SPEED * ctx.planner.dt)
+    yield ctx.rows(path + [goal] * SETTLE_STEPS, [np.ones(2)] * (len(path) + SETTLE_STEPS))
+
+
+def retreat(ctx: SkillContext, arm: int) -> SkillGen:
+    """Lift an arm that is low over the table, so that it can swing away without touching anything."""
+    here = ctx.tcp(arm)
+    floor = ctx.scene.table_z + MIN_TRANSFER
+    if here.pos[2] < floor:
+        yield ctx.line(arm, Pose(np.array([*here.pos[:2], floor]), here.rot), FAST, settle=0)
+
+
+def free_other_arm(ctx: SkillContext, arm: int) -> SkillGen:
+    """Send the other arm home if it is away from it, so that it does not stand over the working arm's
+    objects (arms do not collide with each other, but a low arm would sweep the table)."""
+    other = 1 - arm
+    if other in ctx.held or np.max(np.abs(ctx.q[other] - ctx.home_q[other])) < 0.05:
+        return
+    yield from retreat(ctx, other)
+    yield ctx.joints(other, ctx.home_q[other])
+
+
+def _yaw(rot: np.ndarray) -> float:
+    return math.atan2(rot[1, 0], rot[0, 0])
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))
+
+
+# ---- programs ----
+
+def expand(plan: Any, steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The expert's steps with `for_each` groups expanded (`_` replaced by each member, in name order)."""
+    out = []
+    for step in steps:
+        group = step.get("for_each")
+        if not group:
+            out.append(step)
+            continue
+        members = sorted(n for n, o in plan.objects.items() if o.get("group") == group)
+        for member in members:
+            out.append({k: (v.replace("_", member, 1) if isinstance(v, str) and v.split("/")[0] == "_" else v)
+                        for k, v in step.items() if k != "for_each"})
+    return out
+
+
+def run_skill(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    """The generator of one expert step."""
+    skill, arm = step["skill"], step.get("arm", "auto")
+    obj, target = step.get("object"), step.get("target")
+    if skill == "place":
+        return place(ctx, arm, obj, target)
+    if skill == "stack":
+        return stack(ctx, arm, obj, target)
+    if skill == "grasp":
+        a = ctx.choose_arm(arm, ctx.scene.box(obj).center)
+        return grasp(ctx, a, obj)
+    if skill == "insert":
+        return insert(ctx, arm, obj, target)
+    if skill == "press":
+        return press(ctx, arm, obj)
+    if skill == "push_up":
+        return push_up(ctx, arm, obj, float(step.get("height", 0.1)))
+    if skill == "push":
+        return push(ctx, arm, obj, target)
+    if skill == "handover":
+        return handover(ctx, arm, obj, target)
+    if skill == "release":
+        return open_and_retreat(ctx, ctx.choose_arm(arm, ctx.scene.box(obj).center) if obj else 0)
+    if skill == "home":
+        return home(ctx)
+    if skill == "wait":
+        return iter([ctx.hold(int(step.get("steps", 10)))])
+    raise ValueError(f"skill {skill!r} is not in the expert library yet (no built-in task uses it)")
+
+
+def program(ctx: SkillContext, steps: list[dict[str, Any]]) -> SkillGen:
+    """Every step of an expert in turn; a step that gives up is skipped (its failures are kept in
+    `ctx.failures`), since later steps may still score stages."""
+    for step in expand(ctx.plan, steps):
+        try:
+            yield from run_skill(ctx, step)
+        except SkillFailed as err:
+            ctx.failures.append(str(err))

@@ -1,0 +1,154 @@
+"""`dojo run`: compile (or reuse) a suite's plans, evaluate a policy on them, print the scores.
+
+With no arguments it runs the built-in default suite with the built-in reference policy on the CPU backend.
+Results go to `results.sqlite` in the run's output folder, which Hydra names after the suite, the policy and the
+overrides, so re-running the same command resumes the same run. `record=head|all` films every episode into the
+output folder's `videos/` (and saves its trajectory under `trajectories/`); the report links the videos.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from dojo.backends.mujoco.render import ensure_headless_gl
+
+from .evaluate import QueuedEpisode, evaluate, run_id_for
+from .recorder import EpisodeRecorder, record_cameras
+
+DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
+
+
+def _queue(index_path: Path, split: str) -> list[QueuedEpisode]:
+    index = json.loads(index_path.read_text())
+    return [QueuedEpisode(plan_path=index_path.parent / e["path"], plan_hash=e["hash"], task=e["task"],
+                          dimension=e["dimension"], setting=e["setting"], eval_seed=e["eval_seed"],
+                          episode=e["index"], scene_seed=e["scene_seed"], split=split)
+            for e in index["plans"]]
+
+
+def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
+    """The private seed set a suite names, from the evaluator's secrets file (never from the spec package)."""
+    verification = suite.data.get("verification")
+    if not verification or not cfg.hidden_seeds:
+        return None
+    secrets = json.loads(Path(cfg.hidden_seeds).read_text())
+    if verification["seed_set"] not in secrets:
+        raise KeyError(f"{cfg.hidden_seeds} has no seed set '{verification['seed_set']}'")
+    return [int(s) for s in secrets[verification["seed_set"]]]
+
+
+def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] = (),
+                     plan_paths: dict[str, str] | None = None) -> Any:
+    """The backend renders the policy's cameras plus those being recorded, and no others. Only a policy whose
+    metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
+    privileged = bool(metadata.extra.get("privileged"))
+    cameras = tuple(metadata.cameras) + tuple(c for c in recorded if c not in metadata.cameras)
+    width, height = metadata.image_width or int(cfg.width), metadata.image_height or int(cfg.height)
+    if cfg.backend.name == "mujoco":
+        from dojo.backends.mujoco.backend import MujocoBackend
+
+        threads = int(cfg.backend.threads) or None
+        return lambda: MujocoBackend(num_threads=threads, cameras=cameras, width=width, height=height,
+                                     privileged=privileged, plan_paths=plan_paths if privileged else None)
+    raise ValueError(f"dojo run: backend '{cfg.backend.name}' cannot run evaluations yet; use backend=mujoco")
+
+
+def run_task(cfg: DictConfig) -> int:
+    """The `dojo run` job."""
+    ensure_headless_gl()
+    from hydra.core.hydra_config import HydraConfig
+
+    from dojo.compiler.plan import Plan
+    from dojo.compiler.horizon import load_demo_lengths
+    from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.suite_compile import compile_suite
+
+    from .policy_link import open_policy
+    from .progress import Progress
+    from .report import write_report
+    from .results_store import ResultsStore
+    from .scoring import score_episodes
+
+    library = SpecLibrary.load([Path(p) for p in cfg.packs])
+    suite = library.get("suite", cfg.suite.id)
+    seeds = list(cfg.seeds) if cfg.seeds is not None else None
+    plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
+    demos = load_demo_lengths(Path(cfg.horizons) if cfg.horizons else None)
+    stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
+                          demo_lengths=demos)
+    queue = _queue(Path(stats.index), "public")
+    hidden = _hidden_seeds(cfg, suite)
+    if hidden:
+        hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
+        count = suite.data["verification"].get("episodes", 10)
+        hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
+                                     demo_lengths=demos)
+        queue += _queue(Path(hidden_stats.index), "hidden")
+
+    embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
+    policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    policy = open_policy(policy_cfg, embodiment)  # type: ignore[arg-type]
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    store_path = Path(cfg.results) if cfg.results else out_dir / "results.sqlite"
+    identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_cfg,
+                "backend": cfg.backend.name, "seeds": seeds, "episodes": cfg.episodes, "hidden": bool(hidden)}
+    run_id = run_id_for(identity)
+    robot_cameras = Plan.load(queue[0].plan_path).cameras if queue and cfg.record != "none" else []
+    recorded = record_cameras(str(cfg.record), robot_cameras) if robot_cameras else ()
+    recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=policy.metadata.action_mode,
+                                                relative_to=store_path.parent)) if recorded else None
+    try:
+        with ResultsStore(store_path) as store:
+            store.ensure_run(run_id, identity)
+            finished = store.rows(run_id)
+            with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
+                plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
+                evaluate(queue, _backend_factory(cfg, policy.metadata, recorded, plan_paths), policy, store, run_id,
+                         num_envs=int(cfg.num_envs), progress=progress,
+                         episode_timeout_s=float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None,
+                         recorder_factory=recorder_factory)
+            rows = store.rows(run_id)
+    finally:
+        policy.close()
+    public = [r for r in rows if r.split == "public"]
+    _print_scores(score_episodes(public), run_id, store_path, quiet=cfg.progress == "jsonl")
+    if cfg.report:
+        report_path = Path(cfg.report)
+        write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id})
+        print(f"report: {report_path} and {report_path.with_suffix('.html')}")
+    return 0
+
+
+def _print_scores(scores: Any, run_id: str, store_path: Path, quiet: bool) -> None:
+    """The leaderboard view of one run: per task, per dimension, and overall (mean over dimensions)."""
+    if quiet:
+        print(json.dumps({"run_id": run_id, "results": str(store_path), "scores": scores.to_dict()}, default=str))
+        return
+
+    def fmt(stat: Any) -> str:
+        return f"{stat.mean:.1f}" + (f" ± {stat.std:.1f}" if stat.std is not None else "")
+
+    table = Table(title=escape(f"run {run_id}"))
+    for column in ("task", "dimension", "episodes", "success %", "score"):
+        table.add_column(column, justify="left" if column in ("task", "dimension") else "right")
+    for task in scores.tasks:  # names come from specs (third-party packs too): never read them as markup
+        table.add_row(escape(task.task), task.dimension, str(task.episodes), fmt(task.metrics.success),
+                      fmt(task.metrics.score))
+    table.add_section()
+    for name, dim in scores.dimensions.items():
+        table.add_row(f"[bold]{name}", f"{len(dim.tasks)} tasks", "", fmt(dim.metrics.success),
+                      fmt(dim.metrics.score))
+    table.add_section()
+    label = "overall (partial)" if scores.partial else "overall"
+    table.add_row(f"[bold]{label}", "mean of dimensions", "", fmt(scores.overall.success), fmt(scores.overall.score))
+    console = Console()
+    console.print(table)
+    console.print(f"results: {store_path}", markup=False)

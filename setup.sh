@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Installs RoboDojo and everything it needs into the active Python environment (use a venv).
+# Usage: ./setup.sh            (from the repository root)
+set -euo pipefail
+cd "$(dirname "$0")"
+PY="${PYTHON:-python3}"
+
+# System libraries for headless rendering (EGL, or OSMesa) and the report test's browser, where we may install them.
+if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = "0" ]; then
+  missing=""
+  for pkg in libegl1 libegl-mesa0 libgl1 libosmesa6 chromium; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"
+  done
+  if [ -n "$missing" ]; then
+    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $missing >/dev/null
+  fi
+fi
+
+"$PY" -m pip install --quiet --upgrade pip
+"$PY" -m pip install --quiet -e ".[dev]"
+# openpi-client pins numpy<2 although its websocket client runs on numpy 2: install it without its pins so that
+# the protocol tests can talk to the real package.
+"$PY" -m pip install --quiet --no-deps "openpi-client>=0.1.2"
+"$PY" -m pip install --quiet "dm-tree>=0.1.8"
+echo "robodojo installed: $("$PY" -c 'import importlib.metadata as m; print(m.version("robodojo"))'); try: dojo --help"

@@ -1,0 +1,65 @@
+"""Bucketing and padding (no jit): structures, varying fields, parked slots, initial states."""
+
+from __future__ import annotations
+
+import jax
+import mujoco
+import numpy as np
+from conftest import toy_plan
+from mujoco import mjx
+
+from dojo.backends.mjx.backend import to_plan_layout
+from dojo.backends.mjx.bucket import make_buckets, structural_signature
+from dojo.backends.mjx.pad import GRAVCOMP_IN_USE, PARK_ORIGIN
+
+RANDOM_CLUTTER = [("ball",), ("box", "ball"), (), ("ball", "ball")]
+
+
+def _random_plans():
+    return [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate(RANDOM_CLUTTER)]
+
+
+def test_standard_plans_of_a_task_share_one_bucket_and_batch_their_poses():
+    plans = [toy_plan(seed=s) for s in range(3)] + [toy_plan(task="other", block_size=0.05)]
+    buckets = make_buckets(plans)
+    assert [(b.tasks, len(b.members)) for b in buckets] == [(("other",), 1), (("toy",), 3)]
+    toy = buckets[1]
+    assert {"qpos0", "body_pos"} <= set(toy.varying)
+    assert "geom_size" not in toy.varying  # same block size in every toy plan
+    table = toy.table()
+    assert table["body_pos"].shape == (3, toy.model.nbody, 3)
+    np.testing.assert_allclose(table["qpos"], [p.init_qpos for p in plans[:3]])
+
+
+def test_random_plans_with_different_clutter_share_one_padded_bucket():
+    plans = _random_plans()
+    [bucket] = make_buckets(plans)
+    model = bucket.model
+    # union of slots: one box and two balls (the most any plan has of each kind)
+    slot_bodies = [model.body(i) for i in range(model.nbody) if model.body(i).name.startswith("slot")]
+    assert len(slot_bodies) == 3
+    assert {"geom_size", "body_gravcomp", "qpos0"} <= set(bucket.varying)
+    for member, kinds in zip(bucket.members, RANDOM_CLUTTER):
+        parked = member.padded.parked
+        assert len(parked) == 3 - len(kinds)
+        for name in parked:
+            body = member.model.body(name)
+            assert member.model.body_gravcomp[body.id] == 1.0
+            assert member.model.body_pos[body.id][2] == PARK_ORIGIN[2]
+        for name in set(f"slot{k}" for k in range(3)) - set(parked):
+            assert member.model.body_gravcomp[member.model.body(name).id] == GRAVCOMP_IN_USE
+        # the plan's own state comes back unchanged from the padded layout
+        source = member.plan.model()
+        back = to_plan_layout(member.model, source, member.padded.names, member.qpos)
+        np.testing.assert_allclose(back, member.plan.init_qpos)
+
+
+def test_structural_signature_matches_mjx_static_structure():
+    plans = _random_plans()
+    [bucket] = make_buckets(plans)
+    a, b = bucket.members[0].model, bucket.members[2].model
+    assert structural_signature(a) == structural_signature(b)
+    ta, tb = jax.tree.structure(mjx.put_model(a)), jax.tree.structure(mjx.put_model(b))
+    assert ta == tb
+    other = mujoco.MjModel.from_xml_string(toy_plan(task="other", block_size=0.05).model_xml)
+    assert structural_signature(other) != structural_signature(a)

@@ -1,0 +1,125 @@
+"""The `dojo` command line as a user meets it: help, exit codes, Hydra overrides, and no tracebacks."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dojo.runtime.cli import COMMANDS
+
+REPO = Path(__file__).resolve().parents[2]
+PACK = REPO / "tests" / "specs" / "pack"
+
+
+def dojo(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", *args], capture_output=True, text=True,
+                            cwd=cwd, timeout=120)
+    assert "Traceback" not in result.stderr, result.stderr
+    return result
+
+
+def test_top_level_help_lists_every_command() -> None:
+    result = dojo("--help")
+    assert result.returncode == 0
+    for name in ("validate", "compile", "run", "bench", "list", "show", "report", "policy"):
+        assert f"  {name} " in result.stdout
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_command_has_help_with_an_example(name: str) -> None:
+    result = dojo(name, "--help")
+    assert result.returncode == 0, result.stderr
+    assert "example" in result.stdout.lower()
+    assert "dojo " + name in result.stdout
+
+
+def test_unknown_command_suggests_the_closest() -> None:
+    result = dojo("valdate", "specs")
+    assert result.returncode == 2
+    assert "unknown command 'valdate' (did you mean 'validate'?)" in result.stderr
+
+
+def test_validate_exit_codes_and_json(tmp_path: Path) -> None:
+    ok = dojo("validate", str(PACK), "--format", "json")
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    report = json.loads(ok.stdout)
+    assert report["valid"] and report["checked"] == {"asset": 2, "suite": 1, "task": 1}
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kind: suite\nversion: 1\nid: bad\ntasks: [no_such_task]\n")
+    invalid = dojo("validate", str(bad))
+    assert invalid.returncode == 1
+    assert "bad.yaml:4:9: $.tasks[0]: unknown task 'no_such_task'" in invalid.stdout
+    assert "1 problem(s) in 1 file(s)" in invalid.stderr
+
+    assert dojo("validate", str(tmp_path / "missing")).returncode == 2
+    assert dojo("validate", "--format", "xml", str(PACK)).returncode == 2
+
+
+def test_validate_builtin_specs_from_the_repository() -> None:
+    result = dojo("validate", "specs", "assets", cwd=REPO)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "all valid" in result.stdout
+
+
+def test_list_shows_tasks_with_dimension_and_embodiment() -> None:
+    result = dojo("list", "tasks", "--pack", str(PACK))
+    assert result.returncode == 0, result.stderr
+    assert "stack_test" in result.stdout and "generalization" in result.stdout and "arx_x5_bimanual" in result.stdout
+    as_json = json.loads(dojo("list", "robots", "--format", "json").stdout)
+    assert {"arx_x5_bimanual", "piper_bimanual", "piperx_bimanual"} <= {r["id"] for r in as_json}
+    assert dojo("list", "taks").returncode == 2
+
+
+def test_hydra_prints_the_composed_config() -> None:
+    result = dojo("show", "robot=piper_bimanual", "seed=7", "--cfg", "job")
+    assert result.returncode == 0, result.stderr
+    assert "id: piper_bimanual" in result.stdout and "seed: 7" in result.stdout
+
+
+def test_unknown_key_and_misspelled_option_name_the_closest() -> None:
+    key = dojo("show", "sed=3")
+    assert key.returncode == 2
+    assert "unknown key 'sed' (did you mean 'seed'?)" in key.stderr
+    option = dojo("bench", "backend=mjz")
+    assert option.returncode == 2
+    assert "unknown backend 'mjz' (did you mean 'mjx'?)" in option.stderr
+    robot = dojo("show", "robot=piper_bimanul")
+    assert "unknown robot 'piper_bimanul' (did you mean 'piper_bimanual'?)" in robot.stderr
+
+
+def test_multirun_sweeps_with_the_basic_launcher(tmp_path: Path) -> None:
+    result = dojo("show", "-m", "seed=1,2", cwd=tmp_path)
+    assert result.stdout.count("#0 : seed=1") + result.stderr.count("#0 : seed=1") == 1
+    assert "#1 : seed=2" in result.stdout + result.stderr
+
+
+def test_show_renders_a_robot_and_a_task_to_png(tmp_path: Path) -> None:
+    from PIL import Image
+    import numpy as np
+
+    robot = dojo("show", "robot=piper_bimanual", f"out={tmp_path}", "width=160", "height=120")
+    assert robot.returncode == 0, robot.stderr
+    task = dojo("show", "task=stack_blocks", "setting=random", "seed=2", f"out={tmp_path}", "width=160",
+                "height=120", "usd=true")
+    assert task.returncode == 0, task.stderr
+    assert "instruction: " in task.stdout
+    for name in ("piper_bimanual_head", "stack_blocks-random-2_head", "stack_blocks-random-2_left_wrist",
+                 "stack_blocks-random-2_overview"):
+        image = np.asarray(Image.open(tmp_path / f"{name}.png"))
+        assert image.shape == (120, 160, 3) and image.std() > 5, name
+    assert (tmp_path / "stack_blocks-random-2.usda").read_text().startswith("#usda")
+
+
+def test_compile_writes_plans_and_reuses_them(tmp_path: Path) -> None:
+    args = ("compile", f"packs=[{PACK}]", "suite=mini_test", f"out={tmp_path / 'plans'}", "episodes=2", "-j", "2")
+    first = dojo(*args)
+    assert first.returncode == 0, first.stderr
+    assert "4 plans (4 compiled" in first.stdout  # two episodes x the suite's two seeds
+    second = dojo(*args)
+    assert "(0 compiled" in second.stdout and "4 reused" in second.stdout
+    assert (tmp_path / "plans" / "index.json").is_file()

@@ -1,0 +1,150 @@
+"""`dojo run` end to end on the small test pack: results, report, a real kill -9 and resume, a served policy."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dojo.runtime.results_store import ResultsStore
+
+PACK = Path(__file__).resolve().parents[1] / "specs" / "pack"
+BASE = ["run", f"packs=[{PACK}]", "suite=mini_test", "episodes=3", "num_envs=2", "progress=quiet"]
+
+
+def dojo(*args: str, cwd: Path, **kwargs) -> subprocess.Popen | subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "dojo.runtime.cli", *args]
+    env = dict(os.environ, DOJO_PLAN_CACHE=str(cwd / "plan-cache"))
+    if kwargs.pop("background", False):
+        return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def episodes(path: Path) -> dict[tuple, tuple]:
+    with ResultsStore(path, readonly=True) as store:
+        return {row.key: (row.success, row.score, row.steps, row.failure_reason) for row in store.rows()}
+
+
+def test_run_records_every_episode_and_writes_the_report(tmp_path: Path) -> None:
+    result = dojo(*BASE, f"results={tmp_path / 'r.sqlite'}", f"report={tmp_path / 'report.json'}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    rows = episodes(tmp_path / "r.sqlite")
+    assert len(rows) == 6  # 3 episodes x the suite's two seeds
+    assert all(not success and reason == "horizon" for success, _, _, reason in rows.values())
+    assert "overall" in result.stdout and "stack_test" in result.stdout
+    assert (tmp_path / "report.json").is_file() and (tmp_path / "report.html").is_file()
+
+
+def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
+    store = tmp_path / "killed.sqlite"
+    proc = dojo(*BASE, f"results={store}", cwd=tmp_path, background=True)
+    deadline = time.monotonic() + 300
+    count = 0
+    while time.monotonic() < deadline and proc.poll() is None:
+        if store.exists():
+            try:
+                with sqlite3.connect(f"file:{store}?mode=ro", uri=True) as db:
+                    count = db.execute("SELECT COUNT(*) FROM episodes").fetchone()[0]
+            except sqlite3.OperationalError:
+                count = 0
+        if count >= 2:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    partial = episodes(store)
+    assert 2 <= len(partial) < 6
+
+    resumed = dojo(*BASE, f"results={store}", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    after = episodes(store)
+    assert len(after) == 6
+    assert all(after[key] == value for key, value in partial.items())  # finished episodes were not re-run
+
+    clean = dojo(*BASE, f"results={tmp_path / 'clean.sqlite'}", cwd=tmp_path)
+    assert clean.returncode == 0, clean.stderr
+    assert episodes(tmp_path / "clean.sqlite") == after  # the same results as an uninterrupted run
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("protocol", ["xpolicylab", "openpi"])
+def test_run_against_a_served_policy(tmp_path: Path, protocol: str) -> None:
+    port = _free_port()
+    server = subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"protocol={protocol}",
+                               f"port={port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        result = dojo(*BASE, "episodes=1", "policy=remote", f"policy.url=ws://127.0.0.1:{port}",
+                      f"policy.protocol={protocol}", f"results={tmp_path / 'r.sqlite'}", cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        rows = episodes(tmp_path / "r.sqlite")
+        assert len(rows) == 2
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+FAILING_POLICY = '''
+import numpy as np
+from xpolicylab.model import Model as Base, PolicyMetadata
+
+
+class Model(Base):
+    """Answers the first observation of every episode, then fails: a policy bug on some inputs."""
+
+    @property
+    def metadata(self):
+        return PolicyMetadata(name="flaky", cameras=(), chunk_size=4, image_width=None, image_height=None)
+
+    def reset(self):
+        pass
+
+    def update_obs(self, obs):
+        self.pose = np.asarray(obs["state"]["joint_pos"], np.float32)
+        self.step = int(obs["meta"]["step"])
+
+    def get_action(self):
+        if self.step > 0:
+            raise RuntimeError("model crashed on this input")
+        return np.repeat(self.pose[None], 4, axis=0)
+'''
+
+
+def test_a_policy_that_fails_ends_only_its_episodes(tmp_path: Path) -> None:
+    (tmp_path / "flaky.py").write_text(FAILING_POLICY)
+    port = _free_port()
+    server = subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", f"policy={tmp_path / 'flaky.py'}",
+                               f"port={port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        result = dojo(*BASE, "episodes=1", "policy=remote", f"policy.url=ws://127.0.0.1:{port}",
+                      f"results={tmp_path / 'r.sqlite'}", cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        rows = episodes(tmp_path / "r.sqlite")
+        assert len(rows) == 2, rows
+        assert all(not success and reason.startswith("policy_error") and steps == 4
+                   for success, _, steps, reason in rows.values()), rows
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def test_dojo_run_with_no_arguments(tmp_path: Path) -> None:
+    """The main job right after set-up: the default suite, the built-in reference policy, the CPU backend."""
+    result = dojo("run", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "overall" in result.stdout and "stack_blocks" in result.stdout
+    stores = list((tmp_path / "outputs" / "robodojo_sim_mini").glob("*/results.sqlite"))
+    assert len(stores) == 1
+    assert len(episodes(stores[0])) == 22  # 11 tasks x 2 episodes

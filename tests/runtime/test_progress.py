@@ -1,0 +1,84 @@
+"""The progress display in JSON-lines, quiet and rich modes, with a fake clock (no timing assumptions)."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+
+from dojo.runtime.progress import Progress
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_jsonl_lines_and_summary(make_row):
+    clock, out = FakeClock(), io.StringIO()
+    progress = Progress(4, mode="jsonl", stream=out, clock=clock)
+    clock.now += 10
+    progress.interactions(250)
+    progress.episode_finished(make_row(dimension="memory", task="swap_T", success=True, score=100.0))
+    clock.now += 10
+    progress.interactions(250)
+    progress.episode_finished(make_row(dimension="memory", task="swap_T", episode=1))
+    progress.close()
+    progress.close()  # a second close writes nothing more
+    lines = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert [line["event"] for line in lines] == ["episode", "episode", "summary"]
+    first, second, summary = lines
+    assert first["done"] == 1 and first["total"] == 4
+    assert first["eta_s"] == pytest.approx(30.0)  # 10 s per episode, 3 to go
+    assert first["interactions_per_s"] == pytest.approx(25.0)
+    assert first["episode"]["task"] == "swap_T" and first["episode"]["success"] is True
+    assert second["success_by_dimension"] == {"memory": {"successes": 1, "episodes": 2, "success_pct": 50.0}}
+    assert second["eta_s"] == pytest.approx(20.0)
+    assert summary["done"] == 2 and summary["interactions"] == 500
+
+
+def test_resumed_episodes_count_towards_done_but_not_speed(make_row):
+    clock, out = FakeClock(), io.StringIO()
+    resumed = [make_row(dimension="precision", task="insert_key", episode=i, success=i == 0) for i in range(6)]
+    progress = Progress(10, mode="jsonl", stream=out, clock=clock, finished=resumed)
+    clock.now += 5
+    progress.episode_finished(make_row(dimension="open", task="align_blocks", episode=6, success=True))
+    progress.close()
+    line = json.loads(out.getvalue().splitlines()[0])
+    assert line["done"] == 7 and line["resumed"] == 6
+    assert line["eta_s"] == pytest.approx(15.0)  # 5 s for the one new episode, 3 to go
+    assert line["success_by_dimension"]["precision"]["success_pct"] == pytest.approx(100 / 6, abs=0.01)
+    assert list(line["success_by_dimension"]) == ["precision", "open"]  # leaderboard order
+
+
+def test_quiet_mode_writes_nothing(make_row):
+    out = io.StringIO()
+    with Progress(2, mode="quiet", stream=out) as progress:
+        progress.interactions(10)
+        progress.episode_finished(make_row())
+        assert progress.snapshot()["done"] == 1
+    assert out.getvalue() == ""
+
+
+def test_rich_mode_draws_counts_and_dimensions(make_row):
+    clock, out = FakeClock(), io.StringIO()
+    progress = Progress(3, mode="rich", stream=out, clock=clock)
+    clock.now += 4
+    progress.interactions(40)
+    progress.episode_finished(make_row(dimension="long_horizon", task="make_kong", success=True))
+    progress.close()
+    text = out.getvalue()
+    assert "1/3" in text
+    assert "Long-Horizon 100.0% (1/1)" in text
+    assert "interactions/s" in text
+
+
+def test_bad_arguments_are_rejected():
+    with pytest.raises(ValueError):
+        Progress(3, mode="fancy")
+    with pytest.raises(ValueError):
+        Progress(3, mode="quiet").interactions(-1)

@@ -1,0 +1,116 @@
+"""``xpolicylab bench`` / ``dojo bench policy``: loopback throughput and round-trip latency of the protocol.
+
+The server runs in a separate process (``python -m xpolicylab.serve``), as in a real evaluation: client and
+server in one process would share one interpreter lock and measure the GIL instead of the protocol.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+from xpolicylab import codec
+from xpolicylab.client import PolicyClient
+from xpolicylab.embodiments import CAMERAS, get_embodiment
+from xpolicylab.observations import synthetic_batch
+from xpolicylab.server import READY_LINE
+from xpolicylab.stats import LatencyStats
+
+
+@dataclass
+class BenchConfig:
+    protocols: tuple[str, ...] = ("xpolicylab", "openpi")
+    batch: int = 64
+    width: int = 640
+    height: int = 480
+    cameras: tuple[str, ...] = CAMERAS
+    n: int = 20
+    warmup: int = 3
+    single_n: int = 50
+    embodiment: str = "arx_x5_bimanual"
+    url: str | None = None
+
+
+@contextmanager
+def spawned_server(protocol: str, timeout_s: float = 60.0) -> Iterator[str]:
+    """Run ``python -m xpolicylab.serve policy=zero`` on a free loopback port; yield its URL."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"protocol={protocol}", "host=127.0.0.1",
+         "port=0", "log_level=warning"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        deadline = time.monotonic() + timeout_s
+        for line in proc.stdout:
+            if line.startswith(READY_LINE):
+                yield line.rsplit(" ", 1)[-1].strip()
+                return
+            if time.monotonic() > deadline:
+                break
+        raise RuntimeError(f"the {protocol} bench server did not start")
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _measure(url: str, protocol: str, cfg: BenchConfig) -> dict[str, Any]:
+    emb = get_embodiment(cfg.embodiment)
+    obs_list = synthetic_batch(emb, cfg.batch, cfg.cameras, cfg.width, cfg.height)
+    env_ids = list(range(cfg.batch))
+    request_bytes = sum(memoryview(c).nbytes for c in codec.encode_chunks(
+        {"observations": obs_list, "env_ids": env_ids}, codec.Dialect(protocol)))
+    with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8) as client:
+        for _ in range(cfg.warmup):
+            client.infer_batch(obs_list, env_ids)
+        batch = LatencyStats()
+        start = time.perf_counter()
+        for _ in range(cfg.n):
+            t0 = time.perf_counter()
+            client.infer_batch(obs_list, env_ids)
+            batch.record((time.perf_counter() - t0) * 1e3)
+        elapsed = time.perf_counter() - start
+        single = LatencyStats()
+        for i in range(cfg.warmup + cfg.single_n):
+            t0 = time.perf_counter()
+            client.infer(obs_list[i % cfg.batch])
+            if i >= cfg.warmup:
+                single.record((time.perf_counter() - t0) * 1e3)
+    return {
+        "mb_per_s": round(request_bytes * cfg.n / elapsed / 1e6, 1),
+        "batch_rtt_ms_p50": round(batch.percentile(50), 2),
+        "batch_rtt_ms_p99": round(batch.percentile(99), 2),
+        "single_rtt_ms_p50": round(single.percentile(50), 2),
+        "single_rtt_ms_p99": round(single.percentile(99), 2),
+        "request_mb": round(request_bytes / 1e6, 2),
+    }
+
+
+def run_bench(cfg: BenchConfig) -> dict[str, Any]:
+    """Measure every dialect in ``cfg.protocols``; returns the figures the bench prints as one JSON line."""
+    result: dict[str, Any] = {
+        "bench": "xpolicylab_loopback", "policy": "zero", "batch": cfg.batch,
+        "images": f"{len(cfg.cameras)}x{cfg.width}x{cfg.height}", "n": cfg.n, "single_n": cfg.single_n,
+    }
+    for protocol in cfg.protocols:
+        if cfg.url:
+            result[protocol] = _measure(cfg.url, protocol, cfg)
+        else:
+            with spawned_server(protocol) as url:
+                result[protocol] = _measure(url, protocol, cfg)
+    return result
+
+
+def protocols_arg(values: Sequence[str]) -> tuple[str, ...]:
+    """Validate the ``protocols`` option."""
+    bad = [p for p in values if p not in ("xpolicylab", "openpi")]
+    if bad or not values:
+        raise ValueError(f"protocols must be a subset of [xpolicylab,openpi], got {list(values)}")
+    return tuple(values)

@@ -1,0 +1,397 @@
+"""The client the runtime (and the checker) uses to talk to a policy server, in either dialect.
+
+* ``AsyncPolicyClient`` for asyncio code, ``PolicyClient`` (same methods, blocking) for everything else.
+* Connecting retries with exponential backoff, because a policy server often needs a while to load weights.
+* Every reply has a deadline (``recv_timeout_s``): a silent server raises ``ProtocolError(timeout)`` instead of
+  hanging an evaluation.
+* If the connection drops, the client reconnects, repeats ``hello`` and the current ``prepare_case`` (the
+  trial's identifiers are kept), and retries the request once, so the current trial resumes.
+* Native dialect: replies are matched to requests by ``message_id``, so a heartbeat can run during an infer.
+  openpi dialect: lock-step ``infer`` only; ``reset``/``prepare_case``/``trial_end`` have no openpi
+  counterpart and are local no-ops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+import uuid
+from collections.abc import Awaitable, Callable, Hashable, Sequence
+from typing import Any, TypeVar
+
+import numpy as np
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+
+from xpolicylab import codec, transport
+from xpolicylab.errors import ErrorCode, ProtocolError
+from xpolicylab.model import Observation, PolicyMetadata
+from xpolicylab.protocol import REPLY_TO, Frame, MessageType, decode_frame, encode_frame
+from xpolicylab.stats import LatencyStats
+
+T = TypeVar("T")
+
+
+class AuthError(ConnectionError):
+    """The server refused our token (HTTP 401); retrying cannot help."""
+
+
+class AsyncPolicyClient:
+    """Asyncio client. ``await connect()`` first (or ``async with``)."""
+
+    def __init__(
+        self,
+        url: str,
+        protocol: str = "xpolicylab",
+        *,
+        token: str | None = None,
+        evaluation_id: str | None = None,
+        connect_timeout_s: float = 10.0,
+        recv_timeout_s: float = 60.0,
+        max_connect_attempts: int = 5,
+        backoff_s: float = 0.2,
+        backoff_max_s: float = 5.0,
+        max_frame_mb: float = 512.0,
+    ) -> None:
+        if protocol not in ("xpolicylab", "openpi"):
+            raise ValueError(f"protocol must be 'xpolicylab' or 'openpi', got {protocol!r}")
+        self.url = url
+        self.protocol = protocol
+        self.token = token
+        self.evaluation_id = evaluation_id or uuid.uuid4().hex[:12]
+        self.connect_timeout_s = connect_timeout_s
+        self.recv_timeout_s = recv_timeout_s
+        self.max_connect_attempts = max_connect_attempts
+        self.backoff_s = backoff_s
+        self.backoff_max_s = backoff_max_s
+        self.max_size = int(max_frame_mb * (1 << 20))
+        self.stats = LatencyStats()
+        self.reconnects = 0
+        self.metadata: PolicyMetadata | None = None
+        self.server_info: dict[str, Any] = {}
+        self._ws: ClientConnection | None = None
+        self._reader: asyncio.Task[None] | None = None
+        self._pending: dict[str, asyncio.Future[Frame]] = {}
+        self._lockstep = asyncio.Lock()
+        self._reconnecting = asyncio.Lock()
+        self._case: tuple[str | None, dict[str, Any]] | None = None
+        self._trial: dict[str, Any] = {}
+
+    async def __aenter__(self) -> AsyncPolicyClient:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # ----------------------------------------------------------------------------------------------- connection
+    async def _open(self) -> ClientConnection:
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        delay, last = self.backoff_s, None
+        for attempt in range(self.max_connect_attempts):
+            try:
+                return await asyncio.wait_for(
+                    connect(self.url, additional_headers=headers, max_size=self.max_size, max_queue=64,
+                            open_timeout=self.connect_timeout_s, ping_interval=20, ping_timeout=120,
+                            **transport.CONNECTION_OPTIONS),
+                    self.connect_timeout_s,
+                )
+            except InvalidStatus as exc:
+                if exc.response.status_code == 401:
+                    raise AuthError(f"{self.url} refused the token (HTTP 401)") from exc
+                last = exc
+            except (OSError, InvalidHandshake, asyncio.TimeoutError) as exc:
+                last = exc
+            if attempt + 1 < self.max_connect_attempts:
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, self.backoff_max_s)
+        raise ConnectionError(f"could not connect to {self.url} after {self.max_connect_attempts} attempts: {last}")
+
+    async def connect(self) -> PolicyMetadata:
+        """Connect (with retries), read the server's metadata, and replay the current case after a reconnect."""
+        self._ws = await self._open()
+        if self.protocol == "openpi":
+            raw = await self._recv_openpi()
+            if not isinstance(raw, dict):
+                raise ProtocolError(ErrorCode.INVALID_FRAME, "openpi server metadata is not a map")
+            self.server_info = raw
+            self.metadata = PolicyMetadata.from_dict(raw)
+            return self.metadata
+        self._reader = asyncio.create_task(self._read_loop(self._ws))
+        ack = await self._request(MessageType.HELLO, {"client": "xpolicylab", "protocol_version": "1.0"}, retry=False)
+        self.server_info = ack.payload
+        self.metadata = PolicyMetadata.from_dict(dict(ack.payload.get("metadata") or {}))
+        if self._case is not None:
+            case_id, meta = self._case
+            await self._request(MessageType.PREPARE_CASE, meta, action_case_id=case_id, retry=False)
+        return self.metadata
+
+    async def close(self) -> None:
+        """Say ``close`` (native) and disconnect; pending requests fail."""
+        ws, self._ws = self._ws, None
+        if ws is not None:
+            if self.protocol == "xpolicylab":
+                try:
+                    await ws.send(b"".join(encode_frame(Frame(MessageType.CLOSE, {"reason": "client done"}))))
+                except ConnectionClosed:
+                    pass
+            await ws.close()
+        if self._reader is not None:
+            self._reader.cancel()
+            self._reader = None
+        self._fail_pending(ConnectionError("client closed"))
+
+    async def _reconnect(self) -> None:
+        """Open a fresh connection unless a concurrent request already did."""
+        async with self._reconnecting:
+            if self._ws is not None and self._ws.state.name == "OPEN":
+                return
+            old, self._ws = self._ws, None
+            if old is not None:
+                await old.close()
+            if self._reader is not None:
+                self._reader.cancel()
+                self._reader = None
+            self.reconnects += 1
+            await self.connect()
+
+    def _fail_pending(self, exc: BaseException) -> None:
+        for fut in self._pending.values():
+            if not fut.done():
+                fut.set_exception(exc)
+        self._pending.clear()
+
+    async def _read_loop(self, ws: ClientConnection) -> None:
+        try:
+            while True:
+                is_text, parts = await transport.recv_message(ws)
+                if is_text:
+                    continue
+                try:
+                    frame = decode_frame(parts)
+                except ProtocolError:
+                    continue
+                fut = self._pending.pop(str(frame.message_id), None)
+                if frame.message_type is MessageType.ERROR:
+                    err = ProtocolError(_code(frame.payload.get("code")), str(frame.payload.get("message", "")),
+                                        frame.payload.get("details") or {})
+                    if fut is not None:
+                        fut.set_exception(err)
+                    elif not frame.message_id:  # the server could not read one of our frames
+                        self._fail_pending(err)
+                elif fut is not None and not fut.done():
+                    fut.set_result(frame)
+        except ConnectionClosed as exc:
+            self._fail_pending(ConnectionError(f"connection closed: {exc}"))
+
+    # ----------------------------------------------------------------------------------------------- requests
+    async def _request(self, kind: MessageType, payload: dict[str, Any], *, step: int = 0,
+                       action_case_id: str | None = None, retry: bool = True) -> Frame:
+        for attempt in (0, 1):
+            if self._ws is None:
+                await self._reconnect()
+            assert self._ws is not None
+            ws = self._ws
+            frame = Frame(kind, payload, evaluation_id=self.evaluation_id, step=step,
+                          action_case_id=action_case_id if action_case_id is not None
+                          else self._trial.get("action_case_id"),
+                          trial_id=self._trial.get("trial_id"), repeat_index=self._trial.get("repeat_index"))
+            fut: asyncio.Future[Frame] = asyncio.get_running_loop().create_future()
+            self._pending[frame.message_id] = fut
+            try:
+                await transport.send_chunks(ws, encode_frame(frame))
+                reply = await asyncio.wait_for(fut, self.recv_timeout_s)
+            except asyncio.TimeoutError:
+                self._pending.pop(frame.message_id, None)
+                raise ProtocolError(ErrorCode.TIMEOUT,
+                                    f"no {REPLY_TO[kind].value} within {self.recv_timeout_s} s") from None
+            except (ConnectionClosed, ConnectionError):
+                self._pending.pop(frame.message_id, None)
+                if not retry or attempt:
+                    raise
+                if self._ws is ws:
+                    self._ws = None
+                continue
+            if reply.message_type is not REPLY_TO[kind]:
+                raise ProtocolError(ErrorCode.INVALID_FRAME, f"expected {REPLY_TO[kind].value}, got "
+                                    f"{reply.message_type.value}")
+            return reply
+        raise AssertionError("unreachable")
+
+    async def _recv_openpi(self) -> Any:
+        assert self._ws is not None
+        try:
+            is_text, parts = await asyncio.wait_for(transport.recv_message(self._ws), self.recv_timeout_s)
+        except asyncio.TimeoutError:
+            raise ProtocolError(ErrorCode.TIMEOUT, f"no reply within {self.recv_timeout_s} s") from None
+        if is_text:
+            raise ProtocolError(ErrorCode.INFER_FAILED, f"server error: {''.join(parts)}")
+        return codec.decode(parts)
+
+    async def _openpi_infer(self, request: dict[str, Any]) -> dict[str, Any]:
+        async with self._lockstep:
+            for attempt in (0, 1):
+                try:
+                    if self._ws is None:
+                        await self._reconnect()
+                    assert self._ws is not None
+                    await transport.send_chunks(self._ws, codec.encode_chunks(request, codec.Dialect.OPENPI))
+                    reply = await self._recv_openpi()
+                    break
+                except ConnectionClosed:
+                    if attempt:
+                        raise
+                    self._ws = None
+            if not isinstance(reply, dict) or "actions" not in reply:
+                raise ProtocolError(ErrorCode.INVALID_FRAME, "openpi reply has no 'actions'")
+            return reply
+
+    async def _timed(self, call: Awaitable[T]) -> T:
+        start = time.perf_counter()
+        result = await call
+        self.stats.record((time.perf_counter() - start) * 1e3)
+        return result
+
+    # ----------------------------------------------------------------------------------------------- public API
+    async def prepare_case(self, meta: dict[str, Any], action_case_id: str | None = None) -> dict[str, Any]:
+        """Announce an evaluation case; remembered so a reconnect can replay it."""
+        self._case = (action_case_id, dict(meta))
+        self._trial["action_case_id"] = action_case_id
+        if self.protocol == "openpi":
+            return {"ok": True}
+        return (await self._request(MessageType.PREPARE_CASE, dict(meta), action_case_id=action_case_id)).payload
+
+    async def reset(self, trial_id: str | None = None, *, repeat_index: int | None = None,
+                    env_ids: Sequence[Hashable] | None = None) -> dict[str, Any]:
+        """Start a trial (all environments, or only ``env_ids``)."""
+        self._trial.update(trial_id=trial_id, repeat_index=repeat_index)
+        if self.protocol == "openpi":
+            return {"ok": True}
+        payload: dict[str, Any] = {} if trial_id is None else {"trial_id": trial_id}
+        if env_ids is not None:
+            payload["env_ids"] = list(env_ids)
+        return (await self._request(MessageType.RESET, payload)).payload
+
+    async def infer_raw(self, obs: Observation, step: int = 0) -> dict[str, Any]:
+        """One observation in, the full reply payload out (``actions``, ``action_mode``, ...)."""
+        if self.protocol == "openpi":
+            return await self._timed(self._openpi_infer(obs))
+        return (await self._timed(self._request(MessageType.INFER, {"observation": obs}, step=step))).payload
+
+    async def infer(self, obs: Observation, step: int = 0) -> np.ndarray:
+        """One observation in, one action chunk ``float32[K, D]`` out."""
+        return np.asarray((await self.infer_raw(obs, step))["actions"])
+
+    async def infer_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable],
+                          step: int = 0) -> np.ndarray:
+        """Many environments in one request, ``float32[B, K, D]`` out (looped for servers without batching)."""
+        if len(obs_list) != len(env_ids):
+            raise ValueError("obs_list and env_ids must have the same length")
+        request = {"observations": list(obs_list), "env_ids": list(env_ids)}
+        if self.protocol == "openpi":
+            if not self.metadata or not self.metadata.batch:
+                return np.stack([await self.infer(o, step) for o in obs_list])
+            reply = await self._timed(self._openpi_infer(request))
+        else:
+            reply = (await self._timed(self._request(MessageType.INFER, request, step=step))).payload
+        return np.asarray(reply["actions"])
+
+    async def trial_end(self, result: dict[str, Any]) -> dict[str, Any]:
+        """Report a trial's outcome to the policy."""
+        if self.protocol == "openpi":
+            return {"ok": True}
+        return (await self._request(MessageType.TRIAL_END, dict(result))).payload
+
+    async def heartbeat(self) -> float:
+        """Round trip of a heartbeat in milliseconds (openpi: not supported, returns NaN)."""
+        if self.protocol == "openpi":
+            return float("nan")
+        start = time.perf_counter()
+        await self._request(MessageType.HEARTBEAT, {})
+        return (time.perf_counter() - start) * 1e3
+
+
+def _code(value: Any) -> ErrorCode:
+    try:
+        return ErrorCode(value)
+    except ValueError:
+        return ErrorCode.INTERNAL
+
+
+class PolicyClient:
+    """Blocking twin of ``AsyncPolicyClient`` (same constructor and methods), run on a private event loop."""
+
+    def __init__(self, url: str, protocol: str = "xpolicylab", **kwargs: Any) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="xpolicylab-client", daemon=True)
+        self._thread.start()
+        self._client = self._run(self._make(url, protocol, kwargs))
+
+    @staticmethod
+    async def _make(url: str, protocol: str, kwargs: dict[str, Any]) -> AsyncPolicyClient:
+        return AsyncPolicyClient(url, protocol, **kwargs)
+
+    def _run(self, coro: Awaitable[T]) -> T:
+        return asyncio.run_coroutine_threadsafe(coro, self._loop).result()  # type: ignore[arg-type]
+
+    def __enter__(self) -> PolicyClient:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def metadata(self) -> PolicyMetadata | None:
+        return self._client.metadata
+
+    @property
+    def server_info(self) -> dict[str, Any]:
+        return self._client.server_info
+
+    @property
+    def stats(self) -> LatencyStats:
+        return self._client.stats
+
+    @property
+    def reconnects(self) -> int:
+        return self._client.reconnects
+
+    def connect(self) -> PolicyMetadata:
+        return self._run(self._client.connect())
+
+    def close(self) -> None:
+        """Disconnect and stop the private loop; the client cannot be used afterwards."""
+        if self._loop.is_closed():
+            return
+        try:
+            self._run(self._client.close())
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=10)
+            self._loop.close()
+
+    def _call(self, method: Callable[..., Awaitable[T]], *args: Any, **kwargs: Any) -> T:
+        return self._run(method(*args, **kwargs))
+
+    def prepare_case(self, meta: dict[str, Any], action_case_id: str | None = None) -> dict[str, Any]:
+        return self._call(self._client.prepare_case, meta, action_case_id)
+
+    def reset(self, trial_id: str | None = None, **kwargs: Any) -> dict[str, Any]:
+        return self._call(self._client.reset, trial_id, **kwargs)
+
+    def infer_raw(self, obs: Observation, step: int = 0) -> dict[str, Any]:
+        return self._call(self._client.infer_raw, obs, step)
+
+    def infer(self, obs: Observation, step: int = 0) -> np.ndarray:
+        return self._call(self._client.infer, obs, step)
+
+    def infer_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable], step: int = 0) -> np.ndarray:
+        return self._call(self._client.infer_batch, obs_list, env_ids, step)
+
+    def trial_end(self, result: dict[str, Any]) -> dict[str, Any]:
+        return self._call(self._client.trial_end, result)
+
+    def heartbeat(self) -> float:
+        return self._call(self._client.heartbeat)

@@ -1,0 +1,144 @@
+"""The native dialect: the public XPolicyLab WebSocket protocol, plus a compatible batched ``infer``.
+
+Every frame is one binary MessagePack map
+``{message_type, message_id, evaluation_id, action_case_id, trial_id, repeat_index, step, sent_at, payload}``.
+A reply copies the request's identifiers (``message_id`` included, which is how a client matches replies to
+requests) and ``step``. ``error`` replaces the paired reply and carries ``{code, message, details}``.
+
+Extension (advertised in ``hello_ack`` as ``capabilities.batch_infer``): an ``infer`` payload
+``{observations: [obs, ...], env_ids: [id, ...]}`` is answered by one ``get_action_batch`` call with
+``{actions: float32[B, K, D], env_ids, action_mode, latency_ms}``. A single ``infer`` stays
+``{observation}`` -> ``{actions: float32[K, D], action_mode, latency_ms}``.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from xpolicylab import codec
+from xpolicylab.errors import ErrorCode, ProtocolError
+
+PROTOCOL_VERSION = "1.0"
+SERVER_NAME = "xpolicylab_policy_server"
+
+
+class MessageType(str, enum.Enum):
+    """All message types of the protocol."""
+
+    HELLO = "hello"
+    HELLO_ACK = "hello_ack"
+    PREPARE_CASE = "prepare_case"
+    PREPARE_CASE_ACK = "prepare_case_ack"
+    RESET = "reset"
+    RESET_RESULT = "reset_result"
+    INFER = "infer"
+    INFER_RESULT = "infer_result"
+    TRIAL_END = "trial_end"
+    TRIAL_END_ACK = "trial_end_ack"
+    HEARTBEAT = "heartbeat"
+    HEARTBEAT_ACK = "heartbeat_ack"
+    CLOSE = "close"
+    ERROR = "error"
+
+
+#: Request type -> reply type. ``close`` has no reply.
+REPLY_TO: dict[MessageType, MessageType] = {
+    MessageType.HELLO: MessageType.HELLO_ACK,
+    MessageType.PREPARE_CASE: MessageType.PREPARE_CASE_ACK,
+    MessageType.RESET: MessageType.RESET_RESULT,
+    MessageType.INFER: MessageType.INFER_RESULT,
+    MessageType.TRIAL_END: MessageType.TRIAL_END_ACK,
+    MessageType.HEARTBEAT: MessageType.HEARTBEAT_ACK,
+}
+REQUESTS = frozenset(REPLY_TO) | {MessageType.CLOSE}
+
+_ID_FIELDS = ("evaluation_id", "action_case_id", "trial_id")
+
+
+@dataclass
+class Frame:
+    """One protocol frame."""
+
+    message_type: MessageType
+    payload: dict[str, Any] = field(default_factory=dict)
+    message_id: str = field(default_factory=lambda: uuid.uuid4().hex)
+    evaluation_id: str | None = None
+    action_case_id: str | None = None
+    trial_id: str | None = None
+    repeat_index: int | None = None
+    step: int = 0
+    sent_at: float = field(default_factory=time.time)
+
+    def to_wire(self) -> dict[str, Any]:
+        """The frame as the map that goes on the wire."""
+        return {
+            "message_type": self.message_type.value,
+            "message_id": self.message_id,
+            "evaluation_id": self.evaluation_id,
+            "action_case_id": self.action_case_id,
+            "trial_id": self.trial_id,
+            "repeat_index": self.repeat_index,
+            "step": self.step,
+            "sent_at": self.sent_at,
+            "payload": self.payload,
+        }
+
+    def reply(self, message_type: MessageType, payload: dict[str, Any] | None = None) -> Frame:
+        """A reply that keeps this request's identifiers and step."""
+        return Frame(message_type, payload or {}, self.message_id, self.evaluation_id, self.action_case_id,
+                     self.trial_id, self.repeat_index, self.step)
+
+    def error(self, exc: ProtocolError) -> Frame:
+        """The ``error`` frame answering this request."""
+        return self.reply(MessageType.ERROR, exc.to_payload())
+
+
+def encode_frame(frame: Frame) -> list[bytes | memoryview]:
+    """Encode a frame as zero-copy chunks (see ``codec.encode_chunks``)."""
+    return codec.encode_chunks(frame.to_wire(), codec.Dialect.XPOLICYLAB)
+
+
+def _optional(wire: dict, key: str, kinds: tuple[type, ...]) -> Any:
+    value = wire.get(key)
+    if value is not None and (not isinstance(value, kinds) or isinstance(value, bool)):
+        raise ProtocolError(ErrorCode.INVALID_FRAME, f"field {key!r} must be {' or '.join(k.__name__ for k in kinds)}",
+                            {"field": key})
+    return value
+
+
+def parse_frame(wire: Any) -> Frame:
+    """Validate a decoded map as a frame. Unknown types raise ``unknown_message_type``, the rest ``invalid_frame``."""
+    if not isinstance(wire, dict):
+        raise ProtocolError(ErrorCode.INVALID_FRAME, f"a frame must be a map, got {type(wire).__name__}")
+    kind = wire.get("message_type")
+    if not isinstance(kind, str):
+        raise ProtocolError(ErrorCode.INVALID_FRAME, "frame has no string 'message_type'", {"field": "message_type"})
+    try:
+        message_type = MessageType(kind)
+    except ValueError:
+        raise ProtocolError(ErrorCode.UNKNOWN_MESSAGE_TYPE, f"unknown message type {kind!r}",
+                            {"message_type": kind, "known": sorted(t.value for t in MessageType)}) from None
+    message_id = _optional(wire, "message_id", (str, int))
+    payload = wire.get("payload", {})
+    if payload is None:
+        payload = {}
+    if not isinstance(payload, dict):
+        raise ProtocolError(ErrorCode.INVALID_FRAME, "field 'payload' must be a map", {"field": "payload"})
+    ids = {key: _optional(wire, key, (str, int)) for key in _ID_FIELDS}
+    step = _optional(wire, "step", (int,))
+    sent_at = _optional(wire, "sent_at", (int, float))
+    return Frame(
+        message_type, payload, message_id if message_id is not None else "",
+        ids["evaluation_id"], ids["action_case_id"], ids["trial_id"],
+        _optional(wire, "repeat_index", (int,)), step or 0, float(sent_at) if sent_at is not None else 0.0,
+    )
+
+
+def decode_frame(fragments: Sequence[bytes | bytearray | memoryview] | bytes) -> Frame:
+    """Decode and validate one binary message as a frame."""
+    return parse_frame(codec.decode(fragments))
