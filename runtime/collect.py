@@ -180,8 +180,7 @@ def collect_task(cfg: DictConfig) -> int:
 
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
     assert isinstance(policy_cfg, dict)
-    options = policy_cfg if policy_cfg.get("url") else {"packs": [str(p) for p in packs], **policy_cfg}
-    policy = open_policy(options, task.data["embodiment"])
+    policy = open_policy(policy_cfg, task.data["embodiment"])
     meta = policy.metadata
     identity = {"collect": task.id, "policy": meta.name, "policy_config": policy_cfg, "setting": cfg.setting,
                 "seed_offset": int(cfg.seed_offset), "cameras": list(cfg.cameras), "width": int(cfg.width),
