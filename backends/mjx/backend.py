@@ -230,7 +230,10 @@ class MjxBackend(Backend):
         out = self._engine.tick(self._members, resets, stepping, list(zip(actions, delta)), steps)
         return jax.device_get(out)
 
-    def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint") -> StepResult:
+    def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
+             observe: Sequence[int] | None = None) -> StepResult:
+        """`observe` chooses which slots render cameras; this backend's observations carry no images (the batched
+        renderer is driven by `dojo bench render`), so every slot gets its full, image-free observation."""
         ids = resolve_ids(env_ids, self.num_envs)
         slots = [self._slots[i] for i in ids]
         ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
