@@ -219,16 +219,17 @@ def grasp_frame(ctx: SkillContext, obj: str) -> tuple[Box, np.ndarray]:
 
 def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.ndarray) -> tuple[np.ndarray, float]:
     """The horizontal finger axis to close along and the opening needed: among the object's horizontal axes
-    that fit between the fingers, the one nearest the unrolled wrist (rim grasps close across the rim)."""
+    along which the grasp region fits between the fingers, the one nearest the unrolled wrist (rim grasps
+    close across the rim)."""
     natural = ctx.natural_axis(arm, region.center)
-    box = ctx.scene.box(obj)
     best = None
     for axis in axes:
         axis = np.array([axis[0], axis[1], 0.0])
         if np.linalg.norm(axis) < 1e-6:
             continue
         axis = axis / np.linalg.norm(axis)
-        width = 2.0 * float(np.abs(box.rot.T @ axis) @ box.half) if len(axes) > 1 else 0.01
+        # across the grasp region (a T's stem, not the whole T): that is what goes between the fingers
+        width = 2.0 * float(np.abs(region.rot.T @ axis) @ region.half) if len(axes) > 1 else 0.01
         fits = width < ctx.max_width - 0.012
         key = (fits, abs(float(np.dot(axis, natural))) if fits else -width)
         if best is None or key > best[0]:

@@ -63,6 +63,16 @@ def revolve_shell(profile: list[tuple[float, float]], thickness: float, sectors:
     return parts
 
 
+def annulus(r_out: float, r_in: float, height: float, sectors: int = 12) -> list[Part]:
+    """A flat ring (a roll of tape lying down): wall sectors from r_in to r_out, z from 0 to height."""
+    parts = []
+    for s in range(sectors):
+        a0, a1 = 2 * math.pi * s / sectors, 2 * math.pi * (s + 1) / sectors
+        pts = [(r * math.cos(a), r * math.sin(a), z) for r in (r_in, r_out) for a in (a0, a1) for z in (0.0, height)]
+        parts.append(np.asarray(pts))
+    return parts
+
+
 def upside_down(parts: list[Part]) -> list[Part]:
     """Turn parts over (z -> top - z) so that the object still rests on z = 0."""
     top = max(float(p[:, 2].max()) for p in parts)
@@ -229,6 +239,7 @@ def main(root: Path = ROOT) -> None:
                                       (0.01, 0.052), (0.0, 0.056)], n=12),
         "pen/pen_cap.obj": lying_along_x(revolve_shell([(0.0078, 0.0), (0.0078, 0.035)], thickness=0.0015,
                                                        sectors=12, base=0.003)),
+        "stationery/tape_roll.obj": annulus(0.05, 0.037, 0.048, sectors=16),
         "cleaning/spray_bottle.obj": revolve_solid([(0.0, 0.0), (0.035, 0.0), (0.035, 0.15), (0.02, 0.17),
                                                     (0.015, 0.2), (0.0, 0.2)]),
     }

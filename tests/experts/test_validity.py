@@ -22,9 +22,7 @@ BELOW_BAR = {
     "classify_objects": "80%: a can dropped into a basket beside the handle sometimes tips out or lands on a rim",
     "cover_blocks": "58%: an upturned cup swings in the pads and tips over next to an already covered block",
     "deposit_coin": "0%: no on-edge coin grasp yet (a top-down grasp holds the coin flat; the slot takes it on edge)",
-    "general_pickup": "88%: flat clutter (the 2.4 mm coin) slips out under the fingertips",
     "insert_tubes": "26%: a thin tube held near its cap leans in the pads and ends outside the hole box",
-    "push_t": "86%: the T sometimes settles just outside 2 cm / 10 degrees after three corrections",
     "put_bottles_into_dustbin": "50%: four bottles with relays overrun the 2000-step horizon, or one bounces off the rim",
 }
 """Tasks whose expert is below the 95% bar in the full table, and why (the README's validity table)."""
