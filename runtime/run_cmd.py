@@ -58,7 +58,19 @@ def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] =
         threads = int(cfg.backend.threads) or None
         return lambda: MujocoBackend(num_threads=threads, cameras=cameras, width=width, height=height,
                                      privileged=privileged, plan_paths=plan_paths if privileged else None)
-    raise ValueError(f"dojo run: backend '{cfg.backend.name}' cannot run evaluations yet; use backend=mujoco")
+    if cfg.backend.name == "mjx":
+        if cameras:
+            raise ValueError(f"dojo run: backend=mjx gives no camera images yet, and this run needs {list(cameras)} "
+                             "(the policy's cameras or record=); use backend=mujoco for vision policies")
+        from dojo.backends.mjx.backend import MjxBackend
+        from dojo.compiler.plan import Plan
+
+        def make() -> MjxBackend:
+            backend = MjxBackend(impl=str(cfg.backend.impl), privileged=privileged, plan_paths=plan_paths)
+            backend.preload([Plan.load(Path(p)) for p in (plan_paths or {}).values()])  # one compilation per run
+            return backend
+        return make
+    raise ValueError(f"dojo run: unknown backend '{cfg.backend.name}'; one of mujoco, mjx")
 
 
 def run_task(cfg: DictConfig) -> int:

@@ -141,8 +141,12 @@ class MjxBackend(Backend):
 
     name = "mjx"
 
-    def __init__(self, impl: str | None = "jax", cache_dir: str | None = None) -> None:
+    def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
+                 plan_paths: dict[str, str] | None = None) -> None:
+        """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
+        layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`)."""
         enable_compilation_cache(cache_dir)
+        self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.impl = choose_impl(impl)
         if self.impl != "jax":
             raise ValueError("the mjx backend evaluates predicates on per-environment contacts: use impl='jax'")
@@ -164,23 +168,25 @@ class MjxBackend(Backend):
         self._known.update({p.hash: p for p in plans})
 
     def load(self, plans: Sequence[Any]) -> None:
+        """Start one slot per plan. Every bucket of every known plan (`preload` and these) gets rows: as many as
+        its plans could ever occupy at once (its known plans, at most one per slot), so that any refill finds a
+        free row in its bucket and the program compiled now serves the whole run."""
         self.preload(plans)
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
-        every = make_buckets(list(self._known.values()))
-        member = {m.plan.hash: (k, i) for k, b in enumerate(every) for i, m in enumerate(b.members)}
-        used = sorted({member[p.hash][0] for p in plans})
-        renumber = {k: j for j, k in enumerate(used)}
-        self._buckets = [every[k] for k in used]
-        self._member = {h: (renumber[k], i) for h, (k, i) in member.items() if k in renumber}
-        self._rows = [[] for _ in used]
+        self._buckets = make_buckets(list(self._known.values()))
+        self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
+        self._rows = [[] for _ in self._buckets]
         self._slots = []
         for s, plan in enumerate(plans):
             k, _ = self._member[plan.hash]
             self._slots.append(_Slot(plan, k, len(self._rows[k])))
             self._rows[k].append(s)
-        self._members = [np.asarray([self._member[self._slots[s].plan.hash][1] for s in rows], np.int32)
-                         for rows in self._rows]
+        for k, bucket in enumerate(self._buckets):
+            capacity = max(len(self._rows[k]), min(len(plans), len(bucket.members)))
+            self._rows[k] += [None] * (capacity - len(self._rows[k]))
+        self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
+                                    np.int32) for rows in self._rows]
         robot = plans[0].robot
         self._dim = A.action_dim("joint", len(robot["arm_joints"]) // 2)
         hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
@@ -221,7 +227,7 @@ class MjxBackend(Backend):
         outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
                              [np.zeros((len(r), self._dim), np.float32) for r in self._rows],
                              [np.zeros(len(r), bool) for r in self._rows])
-        return [self._observation(self._slots[i], outputs) for i in ids]
+        return self._observations([self._slots[i] for i in ids], outputs)
 
     def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
               delta: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
@@ -271,12 +277,29 @@ class MjxBackend(Backend):
             elif slot.step >= slot.plan.horizon:
                 slot.done, slot.end_reason = True, END_HORIZON
         return StepResult(
-            env_ids=ids, obs=[self._observation(s, outputs) for s in slots],
+            env_ids=ids, obs=self._observations(slots, outputs),
             success=np.asarray([s.success for s in slots], bool),
             score=np.asarray([s.score for s in slots], np.float32),
             done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
             stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
             clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32))
+
+    def _observations(self, slots: Sequence[_Slot], outputs: list[dict[str, np.ndarray]]) -> list[Observation]:
+        obs = [self._observation(s, outputs) for s in slots]
+        if self.privileged:
+            fetched: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            for slot, o in zip(slots, obs):
+                if slot.bucket not in fetched:
+                    data = self._engine.data[slot.bucket]
+                    fetched[slot.bucket] = (np.asarray(data.qpos, np.float64), np.asarray(data.qvel, np.float64))
+                qpos, qvel = fetched[slot.bucket]
+                member = self._buckets[slot.bucket].members[self._member[slot.plan.hash][1]]
+                source = member.plan.model()
+                o["privileged"] = {
+                    "qpos": to_plan_layout(member.model, source, member.padded.names, qpos[slot.row]),
+                    "qvel": to_plan_layout(member.model, source, member.padded.names, qvel[slot.row], velocity=True),
+                    "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
+        return obs
 
     def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
         out = outputs[slot.bucket]
@@ -301,15 +324,19 @@ class MjxBackend(Backend):
         return np.stack(out) if out else np.zeros((0, 0))
 
 
-def to_plan_layout(padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str], qpos: np.ndarray
-                   ) -> np.ndarray:
-    """A padded model's qpos moved back into the plan's own model layout (for comparison with `mujoco`)."""
-    out = np.zeros(source.nq)
+def to_plan_layout(padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str], values: np.ndarray,
+                   velocity: bool = False) -> np.ndarray:
+    """A padded model's qpos (or qvel, `velocity=True`) moved back into the plan's own model layout (for the
+    oracle, and for comparison with `mujoco`); parked slots are dropped."""
+    out = np.zeros(source.nv if velocity else source.nq)
+    adr_padded = padded.jnt_dofadr if velocity else padded.jnt_qposadr
+    adr_source = source.jnt_dofadr if velocity else source.jnt_qposadr
+    widths = {0: 6, 1: 3} if velocity else {0: 7, 1: 4}
     for j in range(padded.njnt):
         name = mujoco.mj_id2name(padded, mujoco.mjtObj.mjOBJ_JOINT, j)
         src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, names.get(name, name))
         if src < 0:
             continue
-        width = {0: 7, 1: 4}.get(int(padded.jnt_type[j]), 1)
-        out[source.jnt_qposadr[src]:source.jnt_qposadr[src] + width] = qpos[padded.jnt_qposadr[j]:][:width]
+        width = widths.get(int(padded.jnt_type[j]), 1)
+        out[adr_source[src]:adr_source[src] + width] = values[adr_padded[j]:][:width]
     return out
