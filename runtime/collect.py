@@ -7,6 +7,9 @@ joint states, end-effector poses, grippers, the action executed (next-step actio
 plan hash (`dataset_hdf5`). When all are in, the LeRobot v3.0 dataset is built from those files
 (`dataset_lerobot`), and the task's demo lengths and auto horizon are written to `horizons.json`.
 
+Any task with training data can be collected: the five scored dimensions except Open (evaluation only), and the
+training-only DLC tasks, whose episode rows here are never part of a score.
+
 Scene seeds are `seed_offset + k`, far from the evaluation seeds. With `only_success`, failed episodes are not
 kept and new seeds are drawn until `n` demonstrations are kept (or `max_attempts` episodes were run).
 
@@ -35,6 +38,9 @@ from .evaluate import QueuedEpisode, run_id_for
 from .recorder import SlotRecorder
 
 FORMATS = ("hdf5", "lerobot")
+# Dimensions whose tasks are never demonstrated: Open tasks test what no demonstration showed. Training-only
+# dimensions (DLC) are collected like the scored ones; that is all they are for.
+EVALUATION_ONLY = ("open",)
 
 
 def write_horizons(path: Path, task: str, lengths: list[int], *, auto_generated: bool) -> dict[str, Any]:
@@ -150,7 +156,7 @@ def collect_task(cfg: DictConfig) -> int:
     ensure_headless_gl()
     from dojo.compiler.spec_library import SpecLibrary
 
-    from .episode import DIMENSIONS
+    from .episode import DIMENSIONS, TRAINING_DIMENSIONS
     from .evaluate import evaluate
     from .policy_link import open_policy
     from .progress import Progress
@@ -171,9 +177,13 @@ def collect_task(cfg: DictConfig) -> int:
     packs = [Path(p) for p in cfg.packs]
     library = SpecLibrary.load(packs)
     task = library.get("task", str(cfg.task))
-    if task.data["dimension"] not in DIMENSIONS:  # the episode rows that make collection resumable validate it
-        raise ValueError(f"dojo collect: task {task.id} is in dimension '{task.data['dimension']}', which episode "
-                         f"rows do not accept yet (one of {', '.join(DIMENSIONS)})")
+    dimension = task.data["dimension"]
+    if dimension in EVALUATION_ONLY:
+        raise ValueError(f"dojo collect: task {task.id} is in dimension '{dimension}', which is evaluation only: "
+                         "its tasks have no training demonstrations (RoboDojo's protocol)")
+    if dimension not in DIMENSIONS + TRAINING_DIMENSIONS:  # the episode rows that make collection resumable
+        raise ValueError(f"dojo collect: task {task.id} is in dimension '{dimension}', which episode rows do not "
+                         f"accept (one of {', '.join(DIMENSIONS + TRAINING_DIMENSIONS)})")
     out = Path(cfg.out) if cfg.out else Path("datasets") / task.id
     episodes_dir = out / "hdf5" if "hdf5" in formats else out / ".episodes"
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / f"collect-{task.id}"

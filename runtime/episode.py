@@ -14,14 +14,18 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-# The five capability dimensions of RoboDojo, in the order the paper's leaderboard prints them.
+# The five capability dimensions of RoboDojo, in the order the paper's leaderboard prints them: the scored ones.
 DIMENSIONS: tuple[str, ...] = ("generalization", "precision", "long_horizon", "memory", "open")
+# Training-only dimensions: their tasks are demonstrated (`dojo collect` keeps a row per episode, to resume) but
+# never evaluated, so they are not in DIMENSIONS, which is what scores, reports and progress iterate over.
+TRAINING_DIMENSIONS: tuple[str, ...] = ("dlc",)
 DIMENSION_NAMES: dict[str, str] = {
     "generalization": "Generalization",
     "precision": "Precision",
     "long_horizon": "Long-Horizon",
     "memory": "Memory",
     "open": "Open",
+    "dlc": "DLC (training only)",
 }
 # `public` rows are the leaderboard; `hidden` rows come from a suite's private verification seed set.
 SPLITS: tuple[str, ...] = ("public", "hidden")
@@ -71,8 +75,9 @@ class EpisodeResult:
                 raise ValueError(f"EpisodeResult.{name} must be a non-empty string, got {value!r}")
         if self.split not in SPLITS:
             raise ValueError(f"EpisodeResult.split must be one of {SPLITS}, got {self.split!r}")
-        if self.dimension not in DIMENSIONS:
-            raise ValueError(f"EpisodeResult.dimension must be one of {DIMENSIONS}, got {self.dimension!r}")
+        if self.dimension not in DIMENSIONS + TRAINING_DIMENSIONS:
+            raise ValueError(f"EpisodeResult.dimension must be one of {DIMENSIONS + TRAINING_DIMENSIONS}, "
+                             f"got {self.dimension!r}")
         for name in ("eval_seed", "episode", "scene_seed", "steps"):
             self._set(name, _integer(name, getattr(self, name)))
         if self.episode < 0 or self.steps < 0:

@@ -18,14 +18,20 @@ import pytest
 from dojo.runtime.collect import auto_horizon, write_horizons
 
 PACK = Path(__file__).resolve().parents[1] / "recording" / "pack"
-SMALL = [f"packs=[{PACK}]", "policy=zero", "width=64", "height=48", "progress=quiet"]
+# dlc_test (training only), horizon_test (in horizon_suite) and open_test (evaluation only): one-step tasks.
+COLLECT_PACK = Path(__file__).resolve().parent / "pack"
+SMALL = ["policy=zero", "width=64", "height=48", "progress=quiet"]
 
 
-def collect(*args: str, cwd: Path) -> dict:
-    """Run `dojo collect` in a fresh process; return its summary line."""
+def dojo(command: str, *args: str, cwd: Path, pack: Path = PACK) -> subprocess.CompletedProcess:
     env = dict(os.environ, DOJO_PLAN_CACHE=str(cwd / "plans"))
-    cmd = [sys.executable, "-m", "dojo.runtime.cli", "collect", *SMALL, *args]
-    result = subprocess.run(cmd, check=False, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    cmd = [sys.executable, "-m", "dojo.runtime.cli", command, f"packs=[{pack}]", *args]
+    return subprocess.run(cmd, check=False, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def collect(*args: str, cwd: Path, pack: Path = PACK) -> dict:
+    """Run `dojo collect` in a fresh process; return its summary line."""
+    result = dojo("collect", *SMALL, *args, cwd=cwd, pack=pack)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -125,6 +131,77 @@ def test_collect_resumes_keeps_successes_and_writes_horizons(tmp_path: Path) -> 
     assert horizons == {"demo_lengths": [1, 1, 1], "auto_generated": True, "horizon": 2}
     episodes = pq.read_table(out / "lerobot" / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
     assert episodes.column("robodojo/seed").to_pylist() == [1_000_000, 1_000_001, 1_000_002]
+
+
+def test_collect_dlc_training_only_task(tmp_path: Path) -> None:
+    """DLC tasks are training only: collecting them is their purpose. Their rows (dimension dlc) resume the
+    collection but are never scored (tests/runtime/test_episode.py)."""
+    import h5py
+
+    from dojo.runtime.results_store import ResultsStore
+    from dojo.runtime.scoring import score_episodes
+
+    out = tmp_path / "ds"
+    args = ("task=dlc_test", "n=2", "cameras=[head]", "num_envs=1", f"out={out}")
+    summary = collect(*args, cwd=tmp_path, pack=COLLECT_PACK)
+    assert (summary["kept"], summary["attempted"], summary["successes"]) == (2, 2, 2)
+    assert summary["horizon"] == 2  # ceil(1 x 1.2): the task has its demos' horizon, though never evaluated
+    with h5py.File(out / "hdf5" / "episode_000001.hdf5", "r") as f:
+        assert f.attrs["task"] == "dlc_test" and f.attrs["success"] and f.attrs["seed"] == 1_000_001
+        assert f["observations/images/head"].shape == (1, 48, 64, 3)
+        assert f["observations/depth/head"].shape == (1, 48, 64)
+    info = json.loads((out / "lerobot" / "meta" / "info.json").read_text())
+    assert (info["total_episodes"], info["total_frames"]) == (2, 2)
+    with ResultsStore(out / "collect.sqlite", readonly=True) as store:
+        rows = store.rows()
+    assert [(r.task, r.dimension, r.success) for r in rows] == [("dlc_test", "dlc", True)] * 2
+    try:
+        scores = score_episodes(rows)
+    except ValueError:  # ScoringError is one: DLC rows alone are nothing to score
+        pass
+    else:
+        raise AssertionError(f"DLC episodes were scored: {scores}")
+    assert collect(*args, cwd=tmp_path, pack=COLLECT_PACK) == summary  # and it resumes like any other
+
+
+def test_collect_refuses_evaluation_only_tasks(tmp_path: Path) -> None:
+    result = dojo("collect", *SMALL, "task=open_test", "n=1", f"out={tmp_path / 'ds'}", cwd=tmp_path,
+                  pack=COLLECT_PACK)
+    assert result.returncode != 0 and "evaluation only" in result.stderr
+    assert not (tmp_path / "ds").exists()
+
+
+def test_collected_horizons_set_the_auto_horizons_of_compiled_suites(tmp_path: Path) -> None:
+    """`horizons.json` is what `dojo compile` / `dojo run` read (`horizons=`): the suite's plans get the auto
+    horizon of the collected demos instead of the task's fallback, and new plan hashes."""
+    out = tmp_path / "ds"
+    summary = collect("task=horizon_test", "n=2", "cameras=[head]", "depth=false", "num_envs=1", f"out={out}",
+                      "format=[hdf5]", cwd=tmp_path, pack=COLLECT_PACK)
+    assert summary["horizons"] == str(out / "horizons.json") and summary["horizon"] == 2  # ceil(1 x 1.2)
+    horizons = json.loads((out / "horizons.json").read_text())
+    assert horizons["tasks"]["horizon_test"] == {"demo_lengths": [1, 1], "auto_generated": False, "horizon": 2}
+
+    def compiled(*extra: str) -> list[tuple[str, int]]:
+        plans = tmp_path / "plans-{}".format(len(extra))
+        result = dojo("compile", "suite=horizon_suite", f"out={plans}", *extra, cwd=tmp_path, pack=COLLECT_PACK)
+        assert result.returncode == 0, result.stderr
+        index = json.loads((plans / "index.json").read_text())
+        return [(e["hash"], json.loads((plans / e["path"]).read_text())["horizon"]) for e in index["plans"]]
+
+    with_demos, fallback = compiled(f"horizons={out / 'horizons.json'}"), compiled()
+    assert [h for _, h in with_demos] == [2, 2] and [h for _, h in fallback] == [6, 6]
+    assert not {d for d, _ in with_demos} & {d for d, _ in fallback}
+
+
+@pytest.mark.slow
+def test_collect_dlc_with_the_oracle(tmp_path: Path) -> None:
+    """The real DLC task, demonstrated by its scripted expert (one episode, one small camera)."""
+    out = tmp_path / "ds"
+    summary = collect("task=dlc", "n=1", "max_attempts=2", "policy=oracle", "cameras=[head]", "depth=false",
+                      "num_envs=1", f"out={out}", cwd=tmp_path)
+    assert summary["kept"] == 1 and summary["horizon"] > 0
+    info = json.loads((out / "lerobot" / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 1 and info["total_frames"] == summary["frames"]
 
 
 @pytest.mark.slow

@@ -16,9 +16,31 @@ def test_numpy_scalars_are_normalised(make_row):
 
 @pytest.mark.parametrize("field, value", [
     ("score", 140.0), ("score", float("nan")), ("score", True), ("success", 1), ("steps", 2.5), ("steps", -1),
-    ("dimension", "dlc"), ("split", "private"), ("task", ""), ("wall_time_s", -1.0),
+    ("dimension", "DLC"), ("dimension", "training"), ("split", "private"), ("task", ""), ("wall_time_s", -1.0),
     ("stage_times", {"grasp": 1.5}), ("policy_meta", {"weights": np.zeros(2)}), ("failure_reason", 3),
 ])
 def test_bad_values_are_refused(make_row, field, value):
     with pytest.raises(ValueError, match=field):
         make_row(**{field: value})
+
+
+def test_training_only_dimensions_are_recorded_but_never_scored(make_row, make_task_rows):
+    """DLC episodes are rows (`dojo collect` resumes from them), but no score, report or progress line counts
+    them: they are outside DIMENSIONS, and scoring either refuses them or leaves them out entirely."""
+    from dojo.runtime.episode import DIMENSIONS, TRAINING_DIMENSIONS
+    from dojo.runtime.scoring import ScoringError, score_episodes
+
+    assert TRAINING_DIMENSIONS == ("dlc",) and not set(TRAINING_DIMENSIONS) & set(DIMENSIONS)
+    row = make_row(task="dlc", dimension="dlc", success=np.bool_(True), score=100.0)
+    assert row.dimension == "dlc" and row.success is True
+
+    scored = make_task_rows("insert_tubes", "precision", [(False, 25.0), (True, 100.0)])
+    dlc = make_task_rows("dlc", "dlc", [(True, 100.0)] * 4, first_episode=10)
+    baseline = score_episodes(scored)
+    try:
+        mixed = score_episodes(scored + dlc)
+    except (ScoringError, ValueError):
+        return  # refused outright: it cannot count
+    assert set(mixed.dimensions) == set(baseline.dimensions) == {"precision"}
+    assert "dlc" not in {t.task for t in mixed.tasks}
+    assert mixed.overall == baseline.overall
