@@ -79,6 +79,31 @@ class Scene:
             lo, hi = np.minimum(lo, centre - half), np.maximum(hi, centre + half)
         return Box(pos + rot @ ((lo + hi) / 2.0), rot, (hi - lo) / 2.0)
 
+    def geom_boxes(self, name: str) -> list[Box]:
+        """Each collision geom of the object as a world box (a container's floor, walls and handle)."""
+        out = []
+        for g in self._geoms[name]:
+            g_rot = self.data.geom_xmat[g].reshape(3, 3)
+            out.append(Box(self.data.geom_xpos[g] + g_rot @ self.model.geom_aabb[g, :3], g_rot.copy(),
+                           self.model.geom_aabb[g, 3:].copy()))
+        return out
+
+    def width_through(self, name: str, point: np.ndarray, axis: np.ndarray) -> float:
+        """How wide the object is along the horizontal unit `axis` where a vertical line through `point` meets
+        it: the widest of its collision geoms that line passes through (a T gripped on its stem is as wide as
+        the stem), or its whole box when the line misses every geom."""
+        widths = []
+        for g in self._geoms[name]:
+            g_rot = self.data.geom_xmat[g].reshape(3, 3)
+            centre = self.data.geom_xpos[g] + g_rot @ self.model.geom_aabb[g, :3]
+            half = self.model.geom_aabb[g, 3:]
+            if _vertical_line_meets(point, centre, g_rot, half):
+                widths.append(2.0 * float(np.abs(g_rot.T @ axis) @ half))
+        if not widths:
+            box = self.box(name)
+            return 2.0 * float(np.abs(box.rot.T @ axis) @ box.half)
+        return max(widths)
+
     def has_site(self, name: str, annotation: str) -> bool:
         return annotation in self.plan.objects[name]["sites"]
 
@@ -138,3 +163,19 @@ class Scene:
                 for v in np.linspace(-0.8, 0.8, 5)]
         best = max(grid, key=gap)
         return np.array([*best, centre[2]])
+
+
+def _vertical_line_meets(point: np.ndarray, centre: np.ndarray, rot: np.ndarray, half: np.ndarray) -> bool:
+    """Whether the vertical line through `point` passes through the box (centre, rot, half): the line's
+    parameter intervals inside each slab of the box overlap."""
+    a = rot.T @ (np.asarray(point, dtype=float) - centre)
+    b = rot[2]  # rot.T @ world z
+    lo, hi = -np.inf, np.inf
+    for i in range(3):
+        if abs(b[i]) < 1e-9:
+            if abs(a[i]) > half[i]:
+                return False
+            continue
+        t0, t1 = sorted(((-half[i] - a[i]) / b[i], (half[i] - a[i]) / b[i]))
+        lo, hi = max(lo, t0), min(hi, t1)
+    return lo <= hi

@@ -49,6 +49,9 @@ PALM = 0.045
 FINGERTIP = 0.0166
 """Fingertips below the TCP (finger length 75 mm from the mount, TCP 58.4 mm from it)."""
 GRIP_STEPS = 12
+THIN = 0.01
+THIN_SQUEEZE = 0.003
+"""Objects flatter than THIN (m) are gripped by their rim with a slow close to THIN_SQUEEZE under their width."""
 RELEASE_STEPS = 8
 SETTLE_STEPS = 4
 PITCHES = (0.0, 0.35, 0.6, 0.85)
@@ -60,6 +63,9 @@ SETTLE_CHECK = 10
 PUSH_POS = 0.008
 PUSH_YAW = 4.0
 """How close (m, degrees) `push` brings an object to its target frame before it stops correcting."""
+CORRECT_MIN, CORRECT_MAX = 0.004, 0.08
+"""A carried object found this far (m) from where it should hang above its target has its release pose
+corrected (farther: something is wrong that a shift will not fix)."""
 REACH = 0.5
 """Planar distance from an arm's base within which it grasps and places top-down."""
 
@@ -103,6 +109,15 @@ class SkillContext:
         grip[arm] = value
         return self.rows([self.q.copy()] * steps, [grip] * steps)
 
+    def gripper_ramp(self, arm: int, start: float, end: float, steps: int) -> Segment:
+        """The gripper command moved linearly from `start` to `end` over `steps` (a slow close)."""
+        grips = []
+        for k in range(1, steps + 1):
+            grip = self.grip.copy()
+            grip[arm] = start + (end - start) * min(1.0, k / max(1, steps - 4))
+            grips.append(grip)
+        return self.rows([self.q.copy()] * steps, grips)
+
     def line(self, arm: int, goal: Pose, speed: float, settle: int = SETTLE_STEPS) -> Segment:
         path = self.planner.line(self.q, arm, goal, speed, seed=self._seed(arm, goal.pos))
         return self.rows(path + [path[-1]] * settle)
@@ -118,6 +133,9 @@ class SkillContext:
 
     def actual_tcp(self, arm: int) -> np.ndarray:
         return self.data.site_xpos[self.planner.index.ee_sites[arm]].copy()
+
+    def actual_tcp_rot(self, arm: int) -> np.ndarray:
+        return self.data.site_xmat[self.planner.index.ee_sites[arm]].reshape(3, 3).copy()
 
     # ---- orientations and reach ----
 
@@ -142,10 +160,16 @@ class SkillContext:
     def reachable(self, arm: int, point: np.ndarray, axis: np.ndarray, prefer: float = 0.0) -> Pose:
         """The least tilted pose at `point` that the arm reaches, trying the tilt `prefer` first (a carried
         object keeps the tilt it was grasped with); the closest one if none is exact."""
+        return self.reachable_with(arm, lambda pitch: Pose(point.copy(), self.orientation(arm, point, axis, pitch)),
+                                   prefer)
+
+    def reachable_with(self, arm: int, make_pose: Any, prefer: float = 0.0) -> Pose:
+        """`reachable` for poses that depend on the tilt: `make_pose(pitch)` (a held object's offset from the
+        TCP turns with the gripper)."""
         best, best_err = None, np.inf
         for pitch in [prefer, *(p for p in PITCHES if p > prefer)]:
-            pose = Pose(point.copy(), self.orientation(arm, point, axis, pitch))
-            _, err = self.planner.ik(self._seed(arm, point), arm, pose)
+            pose = make_pose(pitch)
+            _, err = self.planner.ik(self._seed(arm, pose.pos), arm, pose)
             if err < REACH_TOL:
                 self.pitch[arm] = pitch
                 return pose
@@ -219,8 +243,8 @@ def grasp_frame(ctx: SkillContext, obj: str) -> tuple[Box, np.ndarray]:
 
 def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.ndarray) -> tuple[np.ndarray, float]:
     """The horizontal finger axis to close along and the opening needed: among the object's horizontal axes
-    along which the grasp region fits between the fingers, the one nearest the unrolled wrist (rim grasps
-    close across the rim)."""
+    along which the object fits between the fingers at the grasp point, the one nearest the unrolled wrist
+    (rim grasps close across the rim)."""
     natural = ctx.natural_axis(arm, region.center)
     best = None
     for axis in axes:
@@ -228,8 +252,8 @@ def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.nda
         if np.linalg.norm(axis) < 1e-6:
             continue
         axis = axis / np.linalg.norm(axis)
-        # across the grasp region (a T's stem, not the whole T): that is what goes between the fingers
-        width = 2.0 * float(np.abs(region.rot.T @ axis) @ region.half) if len(axes) > 1 else 0.01
+        # across what is between the fingers at the grasp point (a T's stem, not the whole T)
+        width = ctx.scene.width_through(obj, region.center, axis) if len(axes) > 1 else 0.01
         fits = width < ctx.max_width - 0.012
         key = (fits, abs(float(np.dot(axis, natural))) if fits else -width)
         if best is None or key > best[0]:
@@ -249,7 +273,7 @@ def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
         start_center = float(box.center[2])
         axis, width = finger_axis(ctx, arm, obj, region, axes)
         support = box.bottom  # fingertips just above what the object stands on (flat things: a coin)
-        z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.4 * (box.top - support)))
+        z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.15 * (box.top - support)))
         point = np.array([*region.center[:2], z])
         pose = ctx.reachable(arm, point, axis)
         opening = min(1.0, (width + 0.03) / ctx.max_width)
@@ -257,7 +281,13 @@ def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
         yield ctx.gripper(arm, opening, 1)
         yield ctx.line(arm, above, FAST)
         yield ctx.line(arm, pose, SLOW)
-        yield ctx.gripper(arm, 0.0, GRIP_STEPS)
+        if box.top - support < THIN:
+            # a coin: close slowly and squeeze gently (a hard squeeze presses the pads' edges past its thin
+            # rim, onto its face), so that the pads hold it by the rim
+            gentle = max(0.0, (width - THIN_SQUEEZE) / ctx.max_width)
+            yield ctx.gripper_ramp(arm, opening, gentle, 2 * GRIP_STEPS)
+        else:
+            yield ctx.gripper(arm, 0.0, GRIP_STEPS)
         yield ctx.line(arm, pose.shifted([0.0, 0.0, APPROACH]), SLOW)
         if ctx.scene.box(obj).center[2] > start_center + 0.5 * APPROACH:
             ctx.held[arm] = obj
@@ -283,16 +313,21 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     then open and retreat. `yaw_change` turns the object about world z on the way (push_t)."""
     box = ctx.scene.box(obj)
     tcp = ctx.actual_tcp(arm)
-    offset = box.center - tcp  # where the object sits relative to the TCP, as grasped
+    # where the object sits in the gripper's frame, as grasped: it turns with the gripper (a new tilt or yaw
+    # swings a tall object's centre round the TCP)
+    local = ctx.actual_tcp_rot(arm).T @ (box.center - tcp)
     below = float(tcp[2] - box.bottom)
     safe = ctx.transfer_height((obj,), box.center, goal_center, below, container)
     axis = _rotate_z(ctx.tcp(arm).rot[:, 1], yaw_change)  # the object turns with the fingers, by yaw_change
     axis[2] = 0.0
     if yaw_change == 0.0 and np.dot(axis, ctx.natural_axis(arm, goal_center)) < 0.0:
         axis = -axis  # the same grasp turned half round: the wrist stays inside its range
-    offset = _rotate_z(offset, yaw_change)
-    point = goal_center - offset
-    pose = ctx.reachable(arm, point, axis, prefer=ctx.pitch[arm])
+
+    def holding(pitch: float) -> Pose:
+        rot = ctx.orientation(arm, goal_center, axis, pitch)
+        return Pose(goal_center - rot @ local, rot)
+
+    pose = ctx.reachable_with(arm, holding, prefer=ctx.pitch[arm])
     here = ctx.tcp(arm)
     under = ctx.scene.highest_top((obj,), goal_center, float(np.max(box.half[:2])))
     floor = max(pose.pos[2] + 0.02, under + 0.01 + below)
@@ -301,7 +336,14 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
                               ctx.highest(arm, pose, floor, safe)))
     if here.pos[2] < safe:
         yield ctx.line(arm, Pose(np.array([*here.pos[:2], safe]), here.rot), CARRY, settle=0)
-    yield ctx.line(arm, Pose(np.array([*pose.pos[:2], max(safe, pose.pos[2])]), pose.rot), CARRY, settle=8)
+    above = Pose(np.array([*pose.pos[:2], max(safe, pose.pos[2])]), pose.rot)
+    yield ctx.line(arm, above, CARRY, settle=8)
+    # where the object really hangs now (a heavy one turns in the fingers when the gripper tilts): correct
+    # the release pose by what it is off, measured above the target, before going down
+    error = goal_center + [0.0, 0.0, above.pos[2] - pose.pos[2]] - ctx.scene.box(obj).center
+    if CORRECT_MIN < float(np.linalg.norm(error[:2])) < CORRECT_MAX:
+        pose = pose.shifted([error[0], error[1], 0.0])
+        yield ctx.line(arm, above.shifted([error[0], error[1], 0.0]), SLOW, settle=6)
     yield ctx.line(arm, pose, speed_down)
     if release:
         yield from open_and_retreat(ctx, arm)
@@ -341,14 +383,26 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
              if float(np.dot(xy - site.center[:2], toward)) >= 0.0]  # the near half: never across a handle
     inside = [ctx.scene.box(n) for n in ctx.scene.others((obj, owner))
               if np.all(np.abs(site.rot.T @ (ctx.scene.box(n).center - site.center)) <= site.half + 0.02)]
+    floor = float(site.center[2] - site.half[2]) + 0.01
+    walls = [b for b in ctx.scene.geom_boxes(owner) if b.top > floor]  # walls, posts, a handle: not the floor
 
-    def key(xy: np.ndarray) -> tuple[bool, float]:
+    def key(xy: np.ndarray) -> tuple[bool, float, float]:
         free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.01 for b in inside)
-        return (not free, float(np.linalg.norm(xy - ctx.planner.base_pos[arm, :2])))
+        # room to every wall and the handle, in whole centimetres up to the object's size: a dropped object
+        # lands clear of the rim (it tips over a wall it lands next to) and of a handle it would hit
+        clear = min((_footprint_distance(xy, b) for b in walls), default=np.inf) - size
+        return (not free, -round(min(clear, size) * 100.0),
+                float(np.linalg.norm(xy - ctx.planner.base_pos[arm, :2])))
 
     xy = min(spots, key=key)
     rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
+
+
+def _footprint_distance(xy: np.ndarray, box: Box) -> float:
+    """Planar distance from a point to a box's footprint (zero inside it; boxes turned about z only)."""
+    local = box.rot.T @ np.array([xy[0] - box.center[0], xy[1] - box.center[1], 0.0])
+    return float(np.linalg.norm(np.maximum(np.abs(local[:2]) - box.half[:2], 0.0)))
 
 
 def _covers(ctx: SkillContext, obj: str, target: str) -> bool:
@@ -364,8 +418,10 @@ def place(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
     owner = target.split("/", 1)[0] if "/" in target else None
     here, goal = ctx.scene.box(obj).center, ctx.scene.target(target).point
     a = ctx.choose_arm(arm, here, goal)
-    if arm == "auto" and not (_within_reach(ctx, a, here) and _within_reach(ctx, a, goal)):
-        a = ctx.choose_arm("auto", goal)
+    if arm == "auto" and not (_within_reach(ctx, a, here) and _reaches_target(ctx, a, obj, target)):
+        near_goal = [float(np.linalg.norm(goal[:2] - ctx.planner.base_pos[k, :2])) for k in range(2)]
+        if abs(near_goal[0] - near_goal[1]) > 0.02:
+            a = int(np.argmin(near_goal))  # else (a target midway) the arm nearer the object keeps it
         if not _within_reach(ctx, a, here):
             yield from relay(ctx, 1 - a, obj, a)
     for _ in range(PLACE_TRIES):
@@ -485,6 +541,21 @@ def handover(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
     """Bring `obj` to `target` with the arm that reaches the target, the other arm handing it over first when
     the object lies out of that arm's reach (`place` with `auto` does exactly this)."""
     yield from place(ctx, "auto", obj, target)
+
+
+def _reaches_target(ctx: SkillContext, arm: int, obj: str, target: str) -> bool:
+    """Whether `arm` can put `obj` at `target` without a handover: the target is within top-down reach, or
+    the arm reaches the release pose there with some forward tilt (a container's opening a little beyond
+    REACH is dropped into from above)."""
+    goal = ctx.scene.target(target)
+    if _within_reach(ctx, arm, goal.point) or not goal.container:
+        return _within_reach(ctx, arm, goal.point)  # a stack or a surface spot wants a top-down gripper
+    box = ctx.scene.box(obj)
+    point = place_center(ctx, arm, obj, target) + [0.0, 0.0, max(0.0, box.top - float(box.center[2]) - PALM)]
+    axis = ctx.natural_axis(arm, point)
+    seed = ctx._seed(arm, point)
+    return any(ctx.planner.ik(seed, arm, Pose(point, ctx.orientation(arm, point, axis, pitch)))[1] < REACH_TOL
+               for pitch in PITCHES)
 
 
 def _within_reach(ctx: SkillContext, arm: int, point: np.ndarray) -> bool:
