@@ -147,12 +147,19 @@ def solve_ik(xp: Any, fk: FK, q0: Array, target_pos: Array, target_mat: Array, l
     `tol` (NumPy callers only) stops early once every weighted pose error is below it; leave it None under
     jit, where the loop must have a fixed length.
     """
-    weight = xp.asarray([1.0, 1.0, 1.0, IK_ROT_WEIGHT, IK_ROT_WEIGHT, IK_ROT_WEIGHT])
     q = q0
     for _ in range(iterations):
-        pos, mat, jac = fk(q)
-        err = pose_error(xp, pos, mat, target_pos, target_mat)
+        q, err = ik_iteration(xp, fk, q, target_pos, target_mat, lo, hi)
         if tol is not None and float(xp.max(xp.abs(err))) < tol:
             break
-        q = xp.clip(q + dls_step(xp, jac * weight[:, None], err), lo, hi)
     return q
+
+
+def ik_iteration(xp: Any, fk: FK, q: Array, target_pos: Array, target_mat: Array, lo: Array, hi: Array
+                 ) -> tuple[Array, Array]:
+    """One DLS step of `solve_ik` from q: (the next q within [lo, hi], the weighted pose error at q). Jitted
+    callers run it in their own fixed-length loop (`jax.lax.fori_loop`), which compiles one step, not N."""
+    weight = xp.asarray([1.0, 1.0, 1.0, IK_ROT_WEIGHT, IK_ROT_WEIGHT, IK_ROT_WEIGHT])
+    pos, mat, jac = fk(q)
+    err = pose_error(xp, pos, mat, target_pos, target_mat)
+    return xp.clip(q + dls_step(xp, jac * weight[:, None], err), lo, hi), err

@@ -7,11 +7,13 @@ those given to `preload` and to `load`) and gives each bucket one row per slot t
 plan of another bucket it moves to a row of that bucket that no slot uses. Neither recompiles. A plan the
 backend has never seen, or a bucket without a free row, is an error that names the fix (`preload` the queue).
 
-Per tick and bucket, traced once: joint actions (`joint`, `delta_joint`; per-env `delta` flag) become actuator
-controls with `dojo.backends.actions`; physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
+Per tick and bucket, traced once: actions in every mode (a per-env mode id picks `joint`, `delta_joint`, `ee` or
+`delta_ee`, so one program serves all four) become actuator controls with `dojo.backends.actions`; the ee modes
+solve the same damped-least-squares IK as the CPU backend, batched on the device with MJX kinematics and
+Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no env of the bucket asks for ee);
+physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
 and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
-backend's `RobotIndex.proprioception`. The `ee` modes need IK with MJX Jacobians and are not wired yet (they
-raise). Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
+backend's `RobotIndex.proprioception`. Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
 environment, so this backend runs `impl='jax'`; the `warp` implementation serves `Engine` (physics, bench).
 """
 
@@ -25,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import mjx
 
 from .. import actions as A
 from ..base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, EpisodeDone, Observation, StepResult, resolve_ids
@@ -36,7 +39,10 @@ from .batch import BucketArrays, Engine, Hooks, Tree
 from .bucket import Bucket, make_buckets
 from .cache import choose_impl, enable_compilation_cache
 
-JOINT_MODES = ("joint", "delta_joint")
+MODES = ("joint", "delta_joint", "ee", "delta_ee")
+"""Action modes by the id the tick receives per env."""
+INPUT_WIDTH = 2 * A.EE_PER_ARM
+"""Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
 
 
 @dataclass(frozen=True)
@@ -85,10 +91,19 @@ class _DeviceHooks(Hooks):
         return init_memory(jnp, self.programs[arr.bucket.key].layout, arr.size)
 
     def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
-        actions, delta = inputs
+        actions, mode = inputs
         robot = self.robots[arr.bucket.key]
-        q_now = jnp.where(delta[:, None, None], data.qpos[:, robot.qpos_adr], 0.0)  # absolute rows add 0
-        q, grip, clipped = A.joint_targets(jnp, actions, q_now, robot.limits, delta=True)
+        q_arm = data.qpos[:, robot.qpos_adr]
+        joint_dim = A.action_dim("joint", robot.limits.joints_per_arm)
+        q_now = jnp.where((mode == 1)[:, None, None], q_arm, 0.0)  # absolute rows add 0
+        q, grip, clipped = A.joint_targets(jnp, actions[:, :joint_dim], q_now, robot.limits, delta=True)
+        is_ee = mode >= 2
+        q_ee, grip_ee, clipped_ee = jax.lax.cond(
+            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == 3),
+            lambda: (q, grip, clipped))
+        q = jnp.where(is_ee[:, None, None], q_ee, q)
+        grip = jnp.where(is_ee[:, None], grip_ee, grip)
+        clipped = jnp.where(is_ee, clipped_ee, clipped)
         ctrl = data.ctrl.at[:, robot.actuators].set(A.to_ctrl(jnp, q, grip, robot.limits.max_width))
         return ctrl, clipped
 
@@ -106,14 +121,54 @@ class _DeviceHooks(Hooks):
                         "clipped": clipped, **_proprioception(robot, data)}
 
 
+def _ee_in_base(robot: RobotIndex, d: Tree) -> tuple[jax.Array, jax.Array]:
+    """End-effector positions [..., 2, 3] and rotations [..., 2, 3, 3] in the arms' base frames (batched or one
+    env), as `RobotIndex.ee_pose` computes them on the CPU."""
+    base_r = d.xmat[..., robot.bases, :, :]
+    world_r = d.site_xmat[..., robot.ee_sites, :, :]
+    pos = jnp.einsum("...aji,...aj->...ai", base_r, d.site_xpos[..., robot.ee_sites, :] - d.xpos[..., robot.bases, :])
+    return pos, jnp.swapaxes(base_r, -1, -2) @ world_r
+
+
+def _ee_targets(arr: BucketArrays, robot: RobotIndex, m: Tree, data: Tree, actions: jax.Array, delta: jax.Array
+                ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`ee` / `delta_ee` rows -> arm joint targets [B, 2, J] by batched DLS IK from the measured joints, grippers
+    [B, 2] and clipped counts [B]; `delta` [B] marks the delta_ee rows."""
+    pos_now, rot_now = _ee_in_base(robot, data)
+    quat_now = mat_to_quat(jnp, rot_now)
+    quat_now = quat_now * jnp.where(quat_now[..., :1] < 0, -1.0, 1.0)
+    absolute = A.ee_targets(jnp, actions, pos_now, quat_now, robot.limits, delta=False)
+    relative = A.ee_targets(jnp, actions, pos_now, quat_now, robot.limits, delta=True)
+    pos, rot, grip, clipped = (jnp.where(delta.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+                               for a, b in zip(absolute, relative))
+    lo, hi = jnp.asarray(robot.limits.joint_lo), jnp.asarray(robot.limits.joint_hi)
+    site_body = jnp.asarray(arr.bucket.model.site_bodyid[robot.ee_sites])
+
+    def solve(m_env: Tree, d_env: Tree, target_pos: jax.Array, target_rot: jax.Array) -> jax.Array:
+        def fk(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+            d = mjx.com_pos(m_env, mjx.kinematics(m_env, d_env.replace(qpos=d_env.qpos.at[robot.qpos_adr].set(q))))
+            p, r = _ee_in_base(robot, d)
+            base_r = d.xmat[robot.bases]
+            jacs = []
+            for arm in range(2):
+                jacp, jacr = mjx.jac(m_env, d, d.site_xpos[robot.ee_sites[arm]], site_body[arm])
+                cols = robot.dof_adr[arm]
+                jacs.append(jnp.concatenate([base_r[arm].T @ jacp[cols].T, base_r[arm].T @ jacr[cols].T]))
+            return p, r, jnp.stack(jacs)
+
+        step = lambda _, q: A.ik_iteration(jnp, fk, q, target_pos, target_rot, lo, hi)[0]
+        return jax.lax.fori_loop(0, A.IK_ITERATIONS, step, d_env.qpos[robot.qpos_adr])
+
+    q = jax.vmap(solve, in_axes=(arr.in_axes, 0, 0, 0))(m, data, pos, rot)
+    return q, grip, clipped
+
+
 def _proprioception(robot: RobotIndex, d: Tree) -> dict[str, jax.Array]:
     """`RobotIndex.proprioception` for a batch of MJX data (float32, [B, ...])."""
     width = robot.limits.max_width
     grip = jnp.clip(d.ten_length[:, robot.tendons] / width, 0.0, 1.0)
-    base_r = d.xmat[:, robot.bases].reshape(-1, 2, 3, 3)
-    world_r = d.site_xmat[:, robot.ee_sites].reshape(-1, 2, 3, 3)
-    pos = jnp.einsum("naji,naj->nai", base_r, d.site_xpos[:, robot.ee_sites] - d.xpos[:, robot.bases])
-    quat = mat_to_quat(jnp, jnp.swapaxes(base_r, -1, -2) @ world_r)
+    pos, rot = _ee_in_base(robot, d)
+    quat = mat_to_quat(jnp, rot)
     quat = quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
     arm_q, arm_v = d.qpos[:, robot.qpos_adr], d.qvel[:, robot.dof_adr]
     grip_v = d.ten_velocity[:, robot.tendons] / width
@@ -157,7 +212,7 @@ class MjxBackend(Backend):
         self._member: dict[str, tuple[int, int]] = {}
         self._rows: list[list[int | None]] = []  # per bucket: row -> slot
         self._members: list[np.ndarray] = []
-        self._dim = 0
+        self._joints_per_arm = 0
 
     @property
     def num_envs(self) -> int:
@@ -187,11 +242,10 @@ class MjxBackend(Backend):
             self._rows[k] += [None] * (capacity - len(self._rows[k]))
         self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
                                     np.int32) for rows in self._rows]
-        robot = plans[0].robot
-        self._dim = A.action_dim("joint", len(robot["arm_joints"]) // 2)
+        self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets})
-        example = [(np.zeros((len(r), self._dim), np.float32), np.zeros(len(r), bool)) for r in self._rows]
+        example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example)
         self.reset()
 
@@ -225,15 +279,15 @@ class MjxBackend(Backend):
         for i in ids:
             resets[self._slots[i].bucket][self._slots[i].row] = True
         outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
-                             [np.zeros((len(r), self._dim), np.float32) for r in self._rows],
-                             [np.zeros(len(r), bool) for r in self._rows])
+                             [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows],
+                             [np.zeros(len(r), np.int32) for r in self._rows])
         return self._observations([self._slots[i] for i in ids], outputs)
 
     def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
-              delta: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+              modes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
         steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
                  for rows in self._rows]
-        out = self._engine.tick(self._members, resets, stepping, list(zip(actions, delta)), steps)
+        out = self._engine.tick(self._members, resets, stepping, list(zip(actions, modes)), steps)
         return jax.device_get(out)
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
@@ -245,21 +299,22 @@ class MjxBackend(Backend):
         ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
         if ended:
             raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
-        if mode not in JOINT_MODES:
-            raise ValueError(f"the mjx backend takes the joint modes {JOINT_MODES}; got {mode!r}")
+        if mode not in MODES:
+            raise ValueError(f"unknown action mode {mode!r}; choose one of {MODES}")
+        dim = A.action_dim(mode, self._joints_per_arm)
         actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (ids.size, self._dim):
-            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {self._dim}), got "
+        if actions.shape != (ids.size, dim):
+            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {dim}), got "
                              f"{actions.shape}")
         bad = A.nonfinite(np, actions)
-        rows_a = [np.zeros((len(r), self._dim), np.float32) for r in self._rows]
+        rows_a = [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows]
         stepping = [np.zeros(len(r), bool) for r in self._rows]
-        delta = [np.full(len(r), mode == "delta_joint") for r in self._rows]
+        modes = [np.full(len(r), MODES.index(mode), np.int32) for r in self._rows]
         for k, slot in enumerate(slots):
             if not bad[k]:
-                rows_a[slot.bucket][slot.row] = actions[k]
+                rows_a[slot.bucket][slot.row, :dim] = actions[k]
                 stepping[slot.bucket][slot.row] = True
-        outputs = self._tick([np.zeros(len(r), bool) for r in self._rows], stepping, rows_a, delta)
+        outputs = self._tick([np.zeros(len(r), bool) for r in self._rows], stepping, rows_a, modes)
         clipped = np.zeros(ids.size, np.int32)
         for k, slot in enumerate(slots):
             if bad[k]:
