@@ -160,8 +160,8 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
         cpu = measure_cpu(plans, int(cfg.get("cpu_envs", 8)), int(cfg.get("cpu_steps", 10)), resets=1)
         substeps = float(np.mean([p.n_substeps for p in plans]))
         out["cpu"] = {"env_steps_per_s": cpu["interactions_per_s"] * substeps,
-                      "interactions_per_s": cpu["interactions_per_s"], "num_envs": cpu["num_envs"],
-                      "threads": cpu["threads"]}
+                      **{k: cpu[k] for k in ("interactions_per_s", "interactions_per_cpu_s", "num_envs", "threads",
+                                             "reset_ms_mean", "reset_ms_max", "load_average_1min")}}
     ratios = {}
     for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu")):
         if a in out and b in out:

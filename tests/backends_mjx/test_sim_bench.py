@@ -39,3 +39,21 @@ def test_split_batch_is_proportional_and_complete():
     assert sum(split_batch(buckets, 1001)) == 1001
     with pytest.raises(ValueError):
         split_batch(buckets, 1)
+
+
+def test_dojo_bench_sim_cpu_mode_prints_exactly_one_json_line(tmp_path):
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "bench", "sim", "modes=[cpu]",
+                             "tasks=[stack_blocks]", "episodes=1", "cpu_envs=2", "cpu_steps=3"],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1, result.stdout
+    out = json.loads(lines[0])
+    assert out["tasks"] == ["stack_blocks"] and set(out) >= {"cpu", "device", "mujoco", "jax"}
+    cpu = out["cpu"]
+    assert cpu["num_envs"] == 2 and cpu["interactions_per_s"] > 0 and cpu["interactions_per_cpu_s"] > 0
+    assert cpu["env_steps_per_s"] == pytest.approx(20 * cpu["interactions_per_s"])
+    assert 0 < cpu["reset_ms_mean"] <= cpu["reset_ms_max"]
