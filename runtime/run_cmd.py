@@ -66,6 +66,12 @@ def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] =
         from dojo.compiler.plan import Plan
 
         def make() -> MjxBackend:
+            import jax
+
+            if jax.default_backend() == "cpu":
+                Console(stderr=True).print("[yellow]backend=mjx on a CPU: expect minutes of compilation and seconds "
+                                           "per step (every contact candidate is simulated); backend=mujoco is the "
+                                           "CPU backend[/yellow]")
             backend = MjxBackend(impl=str(cfg.backend.impl), privileged=privileged, plan_paths=plan_paths)
             backend.preload([Plan.load(Path(p)) for p in (plan_paths or {}).values()])  # one compilation per run
             return backend
