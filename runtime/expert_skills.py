@@ -52,6 +52,8 @@ GRIP_STEPS = 12
 THIN = 0.01
 THIN_SQUEEZE = 0.003
 """Objects flatter than THIN (m) are gripped by their rim with a slow close to THIN_SQUEEZE under their width."""
+THIN_AXIS = 0.35
+"""An object this much thinner across one axis than across another is gripped across the thin one."""
 RELEASE_STEPS = 8
 SETTLE_STEPS = 4
 PITCHES = (0.0, 0.35, 0.6, 0.85)
@@ -66,6 +68,8 @@ PUSH_YAW = 4.0
 CORRECT_MIN, CORRECT_MAX = 0.004, 0.08
 """A carried object found this far (m) from where it should hang above its target has its release pose
 corrected (farther: something is wrong that a shift will not fix)."""
+PRECISE_ABOVE = 0.01
+"""Height above its goal at which an insertion measures the held object once more (m)."""
 REACH = 0.5
 """Planar distance from an arm's base within which it grasps and places top-down."""
 
@@ -246,7 +250,7 @@ def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.nda
     along which the object fits between the fingers at the grasp point, the one nearest the unrolled wrist
     (rim grasps close across the rim)."""
     natural = ctx.natural_axis(arm, region.center)
-    best = None
+    candidates = []
     for axis in axes:
         axis = np.array([axis[0], axis[1], 0.0])
         if np.linalg.norm(axis) < 1e-6:
@@ -254,8 +258,13 @@ def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.nda
         axis = axis / np.linalg.norm(axis)
         # across what is between the fingers at the grasp point (a T's stem, not the whole T)
         width = ctx.scene.width_through(obj, region.center, axis) if len(axes) > 1 else 0.01
+        candidates.append((axis, width))
+    widest = max(w for _, w in candidates)
+    best = None
+    for axis, width in candidates:
         fits = width < ctx.max_width - 0.012
-        key = (fits, abs(float(np.dot(axis, natural))) if fits else -width)
+        thin = width < THIN_AXIS * widest  # a coin on edge is pinched across its faces, never across its rim
+        key = (fits, thin, abs(float(np.dot(axis, natural))) if fits else -width)
         if best is None or key > best[0]:
             best = (key, axis if np.dot(axis, natural) >= 0 else -axis, width)
     assert best is not None
@@ -274,6 +283,8 @@ def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
         axis, width = finger_axis(ctx, arm, obj, region, axes)
         support = box.bottom  # fingertips just above what the object stands on (flat things: a coin)
         z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.15 * (box.top - support)))
+        if len(axes) > 1:  # fingertips no lower than the grasp region (a coin standing in a holder's groove)
+            z = max(z, float(region.center[2] - region.half[2]) + FINGERTIP)
         point = np.array([*region.center[:2], z])
         pose = ctx.reachable(arm, point, axis)
         opening = min(1.0, (width + 0.03) / ctx.max_width)
@@ -308,9 +319,11 @@ def _rotate_z(v: np.ndarray, angle: float) -> np.ndarray:
 # ---- carrying and putting down ----
 
 def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw_change: float = 0.0,
-             release: bool = True, speed_down: float = SLOW, container: str | None = None) -> SkillGen:
+             release: bool = True, speed_down: float = SLOW, container: str | None = None,
+             precise: bool = False) -> SkillGen:
     """Move the held `obj` so that its box centre reaches `goal_center`: up to a safe height, across, down,
-    then open and retreat. `yaw_change` turns the object about world z on the way (push_t)."""
+    then open and retreat. `yaw_change` turns the object about world z on the way (push_t). `precise`
+    (insertions) measures and corrects the object's position once more just above the goal, to a millimetre."""
     box = ctx.scene.box(obj)
     tcp = ctx.actual_tcp(arm)
     # where the object sits in the gripper's frame, as grasped: it turns with the gripper (a new tilt or yaw
@@ -344,6 +357,13 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     if CORRECT_MIN < float(np.linalg.norm(error[:2])) < CORRECT_MAX:
         pose = pose.shifted([error[0], error[1], 0.0])
         yield ctx.line(arm, above.shifted([error[0], error[1], 0.0]), SLOW, settle=6)
+    if precise:
+        near = pose.shifted([0.0, 0.0, PRECISE_ABOVE])
+        yield ctx.line(arm, near, speed_down, settle=10)
+        error = goal_center + [0.0, 0.0, PRECISE_ABOVE] - ctx.scene.box(obj).center
+        if float(np.linalg.norm(error[:2])) < CORRECT_MAX:
+            pose = pose.shifted([error[0], error[1], 0.0])
+            yield ctx.line(arm, near.shifted([error[0], error[1], 0.0]), SLOW / 2, settle=10)
     yield ctx.line(arm, pose, speed_down)
     if release:
         yield from open_and_retreat(ctx, arm)
@@ -486,7 +506,29 @@ def insert(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
         yield from grasp(ctx, a, obj)
     box = ctx.scene.box(obj)
     height = float(np.abs(box.rot[2]) @ box.half)
-    yield from carry_to(ctx, a, obj, goal.point + [0.0, 0.0, height + 0.004], speed_down=SLOW / 2)
+    yield from carry_to(ctx, a, obj, goal.point + [0.0, 0.0, height + 0.004], yaw_change=_slot_yaw(ctx, obj, target),
+                        speed_down=SLOW / 2, precise=True)
+
+
+def _slot_yaw(ctx: SkillContext, obj: str, target: str) -> float:
+    """The turn about z that lines a thin object's thin axis up with a slot's narrow axis (a coin on edge into a
+    coin bank); zero unless the target is an elongated opening and the object is thin."""
+    if "/" not in target:
+        return 0.0
+    site = ctx.scene.site(*target.split("/", 1))
+    if np.min(site.half[:2]) <= 0.0 or np.max(site.half[:2]) < 2.0 * np.min(site.half[:2]):
+        return 0.0
+    narrow = site.rot[:, int(np.argmin(site.half[:2]))]
+    box = ctx.scene.box(obj)
+    flat = [k for k in range(3) if abs(box.rot[2, k]) < 0.5]  # the object's horizontal axes
+    if len(flat) < 2:
+        return 0.0
+    thin, wide = sorted(flat, key=lambda k: box.half[k])[:2]
+    if box.half[thin] > THIN_AXIS * box.half[wide]:
+        return 0.0
+    t = box.rot[:, thin]
+    angle = math.atan2(t[0] * narrow[1] - t[1] * narrow[0], t[0] * narrow[0] + t[1] * narrow[1])
+    return _wrap(2.0 * angle) / 2.0  # an axis, not a direction: within a quarter turn
 
 
 def press(ctx: SkillContext, arm: str, obj: str) -> SkillGen:

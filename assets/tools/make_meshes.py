@@ -219,7 +219,9 @@ def main(root: Path = ROOT) -> None:
         "bowl/bowl.obj": revolve_shell([(0.04, 0.0), (0.058, 0.012), (0.07, 0.028), (0.076, 0.045), (0.078, 0.055)],
                                        thickness=0.005, sectors=14, bands=2),
         "cup/cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=12),
-        "cover/cover_cup.obj": upside_down(revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=12)),
+        # a straight band at the (upturned) top: the pads grip it along a line, so the cup cannot pivot in them
+        "cover/cover_cup.obj": upside_down(revolve_shell([(0.03, 0.0), (0.03, 0.03), (0.04, 0.10)], thickness=0.003,
+                                                         sectors=12, bands=2)),
         "mug/mug_body.obj": revolve_shell([(0.04, 0.0), (0.04, 0.095)], thickness=0.005, sectors=12),
         "bottle/bottle.obj": revolve_solid([(0.0, 0.0), (0.033, 0.0), (0.034, 0.003), (0.034, 0.14), (0.026, 0.17),
                                             (0.013, 0.19), (0.013, 0.215), (0.0, 0.215)]),

@@ -19,9 +19,8 @@ from dojo.runtime.expert_validity import (
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "insert_tubes", "push_t",
          "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls", "swap_blocks"]
 BELOW_BAR = {
-    "classify_objects": "80%: a can dropped into a basket beside the handle sometimes tips out or lands on a rim",
-    "cover_blocks": "58%: an upturned cup swings in the pads and tips over next to an already covered block",
-    "deposit_coin": "0%: no on-edge coin grasp yet (a top-down grasp holds the coin flat; the slot takes it on edge)",
+    "cover_blocks": "~80%: a cup handed over through the table, or set down over a block next to a covered one, "
+                    "sometimes tips over or lands on the block",
     "insert_tubes": "26%: a thin tube held near its cap leans in the pads and ends outside the hole box",
     "put_bottles_into_dustbin": "50%: four bottles with relays overrun the 2000-step horizon, or one bounces off the rim",
 }
