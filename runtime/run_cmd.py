@@ -59,9 +59,6 @@ def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] =
         return lambda: MujocoBackend(num_threads=threads, cameras=cameras, width=width, height=height,
                                      privileged=privileged, plan_paths=plan_paths if privileged else None)
     if cfg.backend.name == "mjx":
-        if cameras:
-            raise ValueError(f"dojo run: backend=mjx gives no camera images yet, and this run needs {list(cameras)} "
-                             "(the policy's cameras or record=); use backend=mujoco for vision policies")
         from dojo.backends.mjx.backend import MjxBackend
         from dojo.compiler.plan import Plan
 
@@ -72,7 +69,8 @@ def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] =
                 Console(stderr=True).print("[yellow]backend=mjx on a CPU: expect minutes of compilation and seconds "
                                            "per step (every contact candidate is simulated); backend=mujoco is the "
                                            "CPU backend[/yellow]")
-            backend = MjxBackend(impl=str(cfg.backend.impl), privileged=privileged, plan_paths=plan_paths)
+            backend = MjxBackend(impl=str(cfg.backend.impl), privileged=privileged, plan_paths=plan_paths,
+                                 cameras=cameras, width=width, height=height)
             backend.preload([Plan.load(Path(p)) for p in (plan_paths or {}).values()])  # one compilation per run
             return backend
         return make

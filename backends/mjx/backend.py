@@ -38,6 +38,7 @@ from ..rotations import mat_to_quat
 from .batch import BucketArrays, Engine, Hooks, Tree
 from .bucket import Bucket, make_buckets
 from .cache import choose_impl, enable_compilation_cache
+from .render import CpuRenderer, RenderConfig, observation_images
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
 """Action modes by the id the tick receives per env."""
@@ -197,11 +198,16 @@ class MjxBackend(Backend):
     name = "mjx"
 
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
-                 plan_paths: dict[str, str] | None = None) -> None:
+                 plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
+                 height: int = 480, depth: bool = False) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
-        layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`)."""
+        layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
+        `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
+        model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
+        self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
+        self._renderers: list[CpuRenderer] = []
         self.impl = choose_impl(impl)
         if self.impl != "jax":
             raise ValueError("the mjx backend evaluates predicates on per-environment contacts: use impl='jax'")
@@ -246,6 +252,9 @@ class MjxBackend(Backend):
         hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets})
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
+        self.close()
+        if self.render_config is not None:
+            self._renderers = [CpuRenderer([m.model for m in b.members], self.render_config) for b in self._buckets]
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example)
         self.reset()
 
@@ -281,7 +290,7 @@ class MjxBackend(Backend):
         outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
                              [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows],
                              [np.zeros(len(r), np.int32) for r in self._rows])
-        return self._observations([self._slots[i] for i in ids], outputs)
+        return self._observations(ids, outputs)
 
     def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
               modes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
@@ -332,15 +341,31 @@ class MjxBackend(Backend):
             elif slot.step >= slot.plan.horizon:
                 slot.done, slot.end_reason = True, END_HORIZON
         return StepResult(
-            env_ids=ids, obs=self._observations(slots, outputs),
+            env_ids=ids, obs=self._observations(ids, outputs, observe=observe),
             success=np.asarray([s.success for s in slots], bool),
             score=np.asarray([s.score for s in slots], np.float32),
             done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
             stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
             clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32))
 
-    def _observations(self, slots: Sequence[_Slot], outputs: list[dict[str, np.ndarray]]) -> list[Observation]:
+    def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
+                      observe: Sequence[int] | None = None) -> list[Observation]:
+        """Observations of slots `ids`; images (when the backend has cameras) only for those in `observe` (all
+        when None), rendered per bucket in one call."""
+        slots = [self._slots[i] for i in ids]
         obs = [self._observation(s, outputs) for s in slots]
+        if self.render_config is not None:
+            wanted = None if observe is None else {int(i) for i in observe}
+            for k, renderer in enumerate(self._renderers):
+                picked = [(o, s) for i, o, s in zip(ids, obs, slots)
+                          if s.bucket == k and (wanted is None or int(i) in wanted)]
+                if not picked:
+                    continue
+                qpos = np.asarray(self._engine.data[k].qpos, np.float64)
+                frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
+                                         [qpos[s.row] for _, s in picked])
+                for (o, _), images in zip(picked, observation_images(frames, self.render_config.cameras)):
+                    o.update(images)
         if self.privileged:
             fetched: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             for slot, o in zip(slots, obs):
@@ -366,6 +391,11 @@ class MjxBackend(Backend):
             "meta": {"task": plan.task, "episode": plan.seed, "step": slot.step, "embodiment": plan.embodiment,
                      "control_hz": plan.control_hz},
         }
+
+    def close(self) -> None:
+        for renderer in self._renderers:
+            renderer.close()
+        self._renderers = []
 
     def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
         """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
