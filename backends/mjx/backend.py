@@ -193,7 +193,7 @@ class _Slot:
 
 
 class MjxBackend(Backend):
-    """Batched MJX backend (`impl` 'jax'; see module docstring for 'warp'). Images are not rendered yet."""
+    """Batched MJX backend (`impl` 'jax'; see module docstring for 'warp'), images from the host renderer."""
 
     name = "mjx"
 
@@ -301,8 +301,6 @@ class MjxBackend(Backend):
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
              observe: Sequence[int] | None = None) -> StepResult:
-        """`observe` chooses which slots render cameras; this backend's observations carry no images (the batched
-        renderer is driven by `dojo bench render`), so every slot gets its full, image-free observation."""
         ids = resolve_ids(env_ids, self.num_envs)
         slots = [self._slots[i] for i in ids]
         ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
