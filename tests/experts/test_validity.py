@@ -19,10 +19,10 @@ from dojo.runtime.expert_validity import (
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "insert_tubes", "push_t",
          "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls", "swap_blocks"]
 BELOW_BAR = {
-    "cover_blocks": "~80%: a cup handed over through the table, or set down over a block next to a covered one, "
+    "cover_blocks": "78%: a cup handed over through the table, or set down over a block next to a covered one, "
                     "sometimes tips over or lands on the block",
-    "insert_tubes": "26%: a thin tube held near its cap leans in the pads and ends outside the hole box",
-    "put_bottles_into_dustbin": "50%: four bottles with relays overrun the 2000-step horizon, or one bounces off the rim",
+    "put_bottles_into_dustbin": "6% (score 58.5; 50% before the mink/skill changes): about two of four bottles end in "
+                                "the bin within the 2000-step horizon; a regression not investigated yet",
 }
 """Tasks whose expert is below the 95% bar in the full table, and why (the README's validity table)."""
 CI_SEEDS = 3
