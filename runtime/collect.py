@@ -224,7 +224,8 @@ def collect_task(cfg: DictConfig) -> int:
                     plan_paths[digest] = str(path)
                     queue.append(QueuedEpisode(path, digest, task.id, task.data["dimension"], str(cfg.setting),
                                                0, k, int(cfg.seed_offset) + k))
-                with Progress(len(queue), mode=str(cfg.progress), finished=rows) as progress:
+                finished = [r for r in store.rows(run_id) if r.episode < len(queue)]  # resumed: counted as done
+                with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                     evaluate(queue, _backend_factory(cfg, meta, plan_paths), policy, store, run_id,
                              num_envs=int(cfg.num_envs), progress=progress, recorder_factory=recorder)
     finally:

@@ -122,6 +122,10 @@ def test_collect_resumes_keeps_successes_and_writes_horizons(tmp_path: Path) -> 
 
     again = collect(*args, "n=2", cwd=tmp_path)
     assert again == first
+    shown = dojo("collect", *[a for a in SMALL if not a.startswith("progress=")], "progress=jsonl", *args, "n=2",
+                 cwd=tmp_path)
+    events = [json.loads(line) for line in (shown.stdout + shown.stderr).splitlines() if line.startswith('{"event"')]
+    assert (events[-1]["done"], events[-1]["resumed"], events[-1]["total"]) == (2, 2, 2)  # shown as resumed
     assert [f.stat().st_mtime_ns for f in files] == stamps  # nothing was recorded twice
 
     more = collect(*args, "n=3", cwd=tmp_path)
