@@ -37,6 +37,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from ..mujoco.render import ensure_headless_gl, open_renderer
+
 log = logging.getLogger(__name__)
 Array = Any
 
@@ -295,8 +297,6 @@ class CpuRenderer:
     """
 
     def __init__(self, models: Sequence[mujoco.MjModel], config: RenderConfig) -> None:
-        from dojo.backends.mujoco.render import ensure_headless_gl
-
         ensure_headless_gl()
         self.models, self.config = list(models), config
         for model in self.models:
@@ -306,7 +306,7 @@ class CpuRenderer:
 
     def _renderer(self, k: int) -> mujoco.Renderer:
         if k not in self._renderers:
-            r = mujoco.Renderer(self.models[k], height=self.config.height, width=self.config.width)
+            r = open_renderer(self.models[k], self.config.height, self.config.width)
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.config.shadows
             self._renderers[k] = r
         return self._renderers[k]

@@ -111,13 +111,14 @@ def mujoco_images(model: Any, qpos: np.ndarray, cameras: Sequence[str], width: i
     """MuJoCo's RGB [C, H, W, 3] and depth mm [C, H, W] of one state; `plain` turns shadows and reflections off."""
     import mujoco
 
+    from ..mujoco.render import open_renderer
     from .render import cpu_depth_mm
 
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
     rgb, depth = [], []
-    with mujoco.Renderer(model, height=height, width=width) as renderer:
+    with open_renderer(model, height, width) as renderer:
         if plain:
             renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
             renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
