@@ -17,7 +17,7 @@ from typing import Any, Iterable
 from .spec_errors import JsonPath, SpecError, SpecProblem, did_you_mean, display_path
 from .spec_schema import SPEC_KINDS, RefUse, validate_spec_data
 from .spec_yaml import Located, read_spec_yaml
-from .task_checks import task_problems
+from .task_checks import TRAINING_DIMENSIONS, task_problems
 
 SINGLE_TARGET_KINDS = ("robot", "suite", "task")
 
@@ -183,6 +183,11 @@ class SpecLibrary:
     def _resolve_problem(self, owner: Spec, use: RefUse) -> SpecProblem | None:
         found = self._candidates(owner.package, use.kind, use.value)
         scope = self._scope(owner.package, use.kind)
+        if owner.kind == "suite" and use.kind == "task" and found:
+            dimension = found[0].data.get("dimension")
+            if dimension in TRAINING_DIMENSIONS:
+                return owner.problem(use.path, f"task '{found[0].id}' is training-only (dimension {dimension}): "
+                                               "suites evaluate; demonstrate it with `dojo collect` instead")
         if isinstance(use.value, str):
             if not found:
                 hint = did_you_mean(use.value, [s.id for s in scope])

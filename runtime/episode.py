@@ -14,11 +14,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from dojo.compiler.task_checks import TRAINING_DIMENSIONS
+
 # The five capability dimensions of RoboDojo, in the order the paper's leaderboard prints them: the scored ones.
 DIMENSIONS: tuple[str, ...] = ("generalization", "precision", "long_horizon", "memory", "open")
-# Training-only dimensions: their tasks are demonstrated (`dojo collect` keeps a row per episode, to resume) but
-# never evaluated, so they are not in DIMENSIONS, which is what scores, reports and progress iterate over.
-TRAINING_DIMENSIONS: tuple[str, ...] = ("dlc",)
+# Training-only dimensions (TRAINING_DIMENSIONS): their tasks are demonstrated (`dojo collect` keeps a row per
+# episode, to resume) but never evaluated, so they are not in DIMENSIONS, which scores, reports and progress use.
 DIMENSION_NAMES: dict[str, str] = {
     "generalization": "Generalization",
     "precision": "Precision",
