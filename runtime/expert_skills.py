@@ -10,8 +10,8 @@ has none), targets in placement annotations (`inside`, `hole_1`, `slot`), `top` 
 collision-aware in the simple, robust way scripted demonstrations use: approach from above, descend slowly,
 close, lift clear, transfer above everything in the way, lower, release, back off along the approach;
 orientations tilt forward only when a top-down gripper cannot reach (far baskets, high drops). A place that did
-not land is tried again, a push is measured and corrected. `open`/`close` (articulated fixtures) are not in the
-library yet: no built-in task uses them.
+not land is tried again, a push is measured and corrected. `open`/`close` (drawers, doors, lids: articulated
+fixtures moved by a handle) live in `expert_articulated`.
 """
 
 from __future__ import annotations
@@ -685,6 +685,12 @@ def run_skill(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
         return home(ctx)
     if skill == "wait":
         return iter([ctx.hold(int(step.get("steps", 10)))])
+    if skill in ("open", "close"):
+        from .expert_articulated import close_joint, open_joint  # it builds on this module: imported late
+
+        if skill == "open":
+            return open_joint(ctx, arm, obj, target, float(step.get("amount", 1.0)))
+        return close_joint(ctx, arm, obj, target)
     raise ValueError(f"skill {skill!r} is not in the expert library yet (no built-in task uses it)")
 
 
