@@ -24,13 +24,15 @@ import numpy as np
 from .horizon import task_horizon
 from .robot_emit import apply_home
 from .scene_emit import TABLE_ASSET, emit_scene
-from .scene_sample import STANDARD_LOOK, SceneInstance, sample_scene, setting_config
+from .scene_sample import STANDARD_LOOK, LayoutError, SceneInstance, sample_scene, setting_config
+from .scene_settle import settle
 from .spec_library import Spec, SpecLibrary
 from .spec_schema import collect_marked
 
 PLAN_FORMAT = "robodojo-plan/1"
-COMPILER_REVISION = 1  # bump when emission changes in a way the versions below do not capture
-SETTLE_SECONDS = 0.3   # objects settle onto their supports at compile time, robot holding home
+COMPILER_REVISION = 2  # bump when emission changes in a way the versions below do not capture
+# (2: scenes settle until at rest, and a layout whose objects slide or tip over while settling is redrawn)
+SETTLE_REDRAWS = 6     # layouts tried per episode before the compiler gives up (scene_settle)
 
 
 @dataclass
@@ -57,6 +59,8 @@ class Plan:
     init_ctrl: list[float]
     model_xml: str
     scene: dict[str, Any] = field(default_factory=dict)
+    settle: dict[str, Any] = field(default_factory=dict)
+    """How the initial state was reached: `redraws` (layouts rejected first) and `seconds` simulated."""
     format: str = PLAN_FORMAT
 
     @cached_property
@@ -145,14 +149,20 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, b
     """Sample, emit, compile and settle one episode into a Plan. `demo_lengths` set an `auto` horizon."""
     digest = plan_hash(library, task, setting, seed, demo_lengths)
     robot = library.resolve(task, "robot", task.data["embodiment"])[0]
-    scene: SceneInstance = sample_scene(library, task, setting, seed)
-    emitted = emit_scene(library, task, robot, scene, backend=backend)
-    model = emitted.world.compile()
-    data = mujoco.MjData(model)
-    apply_home(model, data, emitted.robot)
-    for _ in range(int(SETTLE_SECONDS / model.opt.timestep)):
-        mujoco.mj_step(model, data)
-    data.qvel[:] = 0.0
+    for redraw in range(SETTLE_REDRAWS):
+        scene: SceneInstance = sample_scene(library, task, setting, seed, redraw)
+        emitted = emit_scene(library, task, robot, scene, backend=backend)
+        model = emitted.world.compile()
+        data = mujoco.MjData(model)
+        apply_home(model, data, emitted.robot)
+        settled = settle(model, data, {n: h.body for n, h in emitted.objects.items() if h.free_joint})
+        if settled.ok:
+            break
+    else:
+        what = "; ".join(f"{n}: {d}" for n, d in settled.disturbed.items()) or "objects still moving"
+        raise LayoutError([task.problem(("scene",), f"none of {SETTLE_REDRAWS} layouts of setting {setting}, seed "
+                                        f"{seed} settled with the robot at home (the last after "
+                                        f"{settled.seconds:.1f} s: {what})")])
     objects = {}
     for obj in scene.objects:
         handles = asdict(emitted.objects[obj.name])
@@ -169,6 +179,7 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, b
         cameras=list(emitted.robot.cameras), robot=asdict(emitted.robot), objects=objects, regions=regions,
         program=program, init_qpos=_floats(data.qpos), init_qvel=_floats(data.qvel), init_ctrl=_floats(data.ctrl),
         model_xml=emitted.world.to_xml(), scene=scene.to_json(),
+        settle={"redraws": redraw, "seconds": round(settled.seconds, 3)},
     )
 
 

@@ -99,9 +99,11 @@ def _rounded(value: Any) -> Any:
     return value
 
 
-def episode_rng(task_id: str, setting: str, seed: int) -> np.random.Generator:
-    """The one random stream of an episode: PCG64 seeded from a hash, identical on every platform."""
-    digest = hashlib.sha256(f"robodojo-scene|{task_id}|{setting}|{seed}".encode()).digest()
+def episode_rng(task_id: str, setting: str, seed: int, redraw: int = 0) -> np.random.Generator:
+    """The one random stream of an episode: PCG64 seeded from a hash, identical on every platform. `redraw` k > 0
+    gives the k-th replacement stream, for a layout the compiler rejected because it did not settle."""
+    redrawn = f"|redraw {redraw}" if redraw else ""
+    digest = hashlib.sha256(f"robodojo-scene|{task_id}|{setting}|{seed}{redrawn}".encode()).digest()
     return np.random.Generator(np.random.PCG64(int.from_bytes(digest[:16], "little")))
 
 
@@ -114,10 +116,10 @@ def setting_config(task: dict, setting: str) -> dict:
 
 
 class _Sampler:
-    def __init__(self, library: SpecLibrary, task: Spec, setting: str, seed: int):
+    def __init__(self, library: SpecLibrary, task: Spec, setting: str, seed: int, redraw: int):
         self.library, self.task, self.setting, self.seed = library, task, setting, seed
         self.cfg = setting_config(task.data, setting)
-        self.rng = episode_rng(task.id, setting, seed)
+        self.rng = episode_rng(task.id, setting, seed, redraw)
         self.scene = task.data["scene"]
         self.fixtures: dict[str, PlacedObject] = {}  # filled as fixtures are placed, for regions on them
         self.colors_taken: dict[tuple[str, ...], set[str]] = {}  # objects sharing a colour list differ
@@ -289,9 +291,10 @@ def _radius(obj: PlacedObject) -> float:
     return math.hypot(obj.half_extents[0], obj.half_extents[1])
 
 
-def sample_scene(library: SpecLibrary, task: Spec, setting: str, seed: int) -> SceneInstance:
-    """Sample the scene of one episode. Raises LayoutError when the objects cannot be placed."""
-    sampler = _Sampler(library, task, setting, seed)
+def sample_scene(library: SpecLibrary, task: Spec, setting: str, seed: int, redraw: int = 0) -> SceneInstance:
+    """Sample the scene of one episode. Raises LayoutError when the objects cannot be placed. `redraw` k > 0 draws
+    the k-th replacement layout of the same episode (see `scene_settle`)."""
+    sampler = _Sampler(library, task, setting, seed, redraw)
     lighting, background, texture = (sampler.preset(k) for k in ("lighting", "background", "table_texture"))
     expanded = sampler.object_entries()
     spacing = float(task.data["scene"].get("min_spacing", 0.02))

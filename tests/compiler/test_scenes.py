@@ -12,6 +12,7 @@ import pytest
 from dojo.compiler.plan import Plan, compile_plan, plan_hash
 from dojo.compiler.robot_emit import TABLE_TOP_Z
 from dojo.compiler.scene_sample import LayoutError, sample_scene
+from dojo.compiler.scene_settle import MAX_TILT_DEG
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_suite, suite_episodes
 
@@ -134,20 +135,35 @@ BUILTIN_TASKS = ["stack_blocks", "stack_bowls", "push_t", "cover_blocks", "swap_
 def test_scene_settles_with_the_robot_at_home(library: SpecLibrary, task_id: str) -> None:
     """2 s with the robot holding its home pose: no NaN, nothing falls through the table or off it, nothing
     starts interpenetrating, and everything comes to rest."""
-    task = library.get("task", task_id)
     for setting, seed in (("standard", 0), ("random", 1)):
-        plan = compile_plan(library, task, setting, seed)
-        model, data = plan.model(), plan.initial_data()
-        for _ in range(int(2.0 / model.opt.timestep)):
-            mujoco.mj_step(model, data)
-        assert np.all(np.isfinite(data.qpos)), f"{task_id}/{setting}: NaN"
-        for name, obj in plan.objects.items():
-            if obj["free_joint"] is None:
-                continue
-            body = model.body(obj["body"]).id
-            z = data.xpos[body][2]
-            assert z > TABLE_TOP_Z - 0.01, f"{task_id}/{setting}: {name} fell to z={z:.3f}"
-            speed = np.linalg.norm(data.cvel[body][3:])
-            assert speed < 0.05, f"{task_id}/{setting}: {name} still moving at {speed:.3f} m/s"
-        depth = min((data.contact[i].dist for i in range(data.ncon)), default=0.0)
-        assert depth > -0.005, f"{task_id}/{setting}: contacts interpenetrate by {-depth * 1000:.1f} mm"
+        _check_settles(library, task_id, setting, seed)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task_id", BUILTIN_TASKS)
+def test_scenes_of_many_seeds_settle(library: SpecLibrary, task_id: str) -> None:
+    """The same on 10 seeds of each setting: the layouts the compiler keeps are the ones that settle."""
+    for setting in ("standard", "random"):
+        for seed in range(10):
+            _check_settles(library, task_id, setting, seed)
+
+
+def _check_settles(library: SpecLibrary, task_id: str, setting: str, seed: int) -> None:
+    plan = compile_plan(library, library.get("task", task_id), setting, seed)
+    model, data = plan.model(), plan.initial_data()
+    where = f"{task_id}/{setting}/{seed}"
+    up = {name: data.xmat[model.body(obj["body"]).id].reshape(3, 3)[:, 2].copy()
+          for name, obj in plan.objects.items() if obj["free_joint"] is not None}
+    for _ in range(int(2.0 / model.opt.timestep)):
+        mujoco.mj_step(model, data)
+    assert np.all(np.isfinite(data.qpos)), f"{where}: NaN"
+    for name, start_up in up.items():
+        body = model.body(plan.objects[name]["body"]).id
+        z = data.xpos[body][2]
+        assert z > TABLE_TOP_Z - 0.01, f"{where}: {name} fell to z={z:.3f}"
+        speed = np.linalg.norm(data.cvel[body][3:])
+        assert speed < 0.05, f"{where}: {name} still moving at {speed:.3f} m/s"
+        tilt = np.degrees(np.arccos(np.clip(data.xmat[body].reshape(3, 3)[:, 2] @ start_up, -1.0, 1.0)))
+        assert tilt < MAX_TILT_DEG, f"{where}: {name} tipped over by {tilt:.0f} degrees"
+    depth = min((data.contact[i].dist for i in range(data.ncon)), default=0.0)
+    assert depth > -0.005, f"{where}: contacts interpenetrate by {-depth * 1000:.1f} mm"
