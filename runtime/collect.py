@@ -5,7 +5,8 @@ same evaluation loop as `dojo run` (continuous batching, a durable row per episo
 that streams every step into an HDF5 episode: RGB(-D) of the configured cameras at the configured resolution,
 joint states, end-effector poses, grippers, the action executed (next-step action), instruction, scene seed and
 plan hash (`dataset_hdf5`). When all are in, the LeRobot v3.0 dataset is built from those files
-(`dataset_lerobot`), and the task's demo lengths and auto horizon are written to `horizons.json`.
+(`dataset_lerobot`), and the task's demo lengths and auto horizon are merged into the horizons file that
+`dojo compile` and `dojo run` read (`datasets/horizons.json` by default).
 
 Any task with training data can be collected: the five scored dimensions except Open (evaluation only), and the
 training-only DLC tasks, whose episode rows here are never part of a score.
@@ -32,7 +33,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from dojo.backends.mujoco.render import ensure_headless_gl
-from dojo.compiler.horizon import HORIZONS_FORMAT, auto_horizon
+from dojo.compiler.horizon import DEFAULT_HORIZONS, HORIZONS_FORMAT, auto_horizon
 
 from .evaluate import QueuedEpisode, run_id_for
 from .recorder import SlotRecorder
@@ -240,7 +241,7 @@ def collect_task(cfg: DictConfig) -> int:
         summary["lerobot"] = str(_lerobot(out / "lerobot", files, kept, fps=round(_control_hz(files[0]))))
     lengths = [r.steps for r in kept if r.success]
     if lengths:
-        horizons_path = Path(cfg.horizons) if cfg.horizons else out / "horizons.json"
+        horizons_path = Path(cfg.horizons) if cfg.horizons else DEFAULT_HORIZONS
         entry = write_horizons(horizons_path, task.id, lengths, auto_generated=bool(task.data.get("auto_generated")))
         summary.update(horizon=entry["horizon"], horizons=str(horizons_path))
     print(json.dumps(summary))

@@ -13,7 +13,7 @@ from dojo.backends.mujoco.render import ensure_headless_gl
 
 def compile_task(cfg: DictConfig) -> int:
     """Compile the chosen suite's plans into `out` and print what was compiled and what was reused."""
-    from dojo.compiler.horizon import load_demo_lengths
+    from dojo.compiler.horizon import horizons_file, load_demo_lengths
     from dojo.compiler.spec_library import SpecLibrary
     from dojo.compiler.suite_compile import compile_suite
 
@@ -21,7 +21,7 @@ def compile_task(cfg: DictConfig) -> int:
     suite = library.get("suite", cfg.suite.id)
     started = time.perf_counter()
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
-    demos = load_demo_lengths(Path(cfg.horizons) if cfg.horizons else None)
+    demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, Path(cfg.out), jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos)
     seconds = time.perf_counter() - started

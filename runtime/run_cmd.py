@@ -83,7 +83,7 @@ def run_task(cfg: DictConfig) -> int:
     from hydra.core.hydra_config import HydraConfig
 
     from dojo.compiler.plan import Plan
-    from dojo.compiler.horizon import load_demo_lengths
+    from dojo.compiler.horizon import horizons_file, load_demo_lengths
     from dojo.compiler.spec_library import SpecLibrary
     from dojo.compiler.suite_compile import compile_suite
 
@@ -97,7 +97,7 @@ def run_task(cfg: DictConfig) -> int:
     suite = library.get("suite", cfg.suite.id)
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
-    demos = load_demo_lengths(Path(cfg.horizons) if cfg.horizons else None)
+    demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos)
     queue = _queue(Path(stats.index), "public")

@@ -36,6 +36,15 @@ def collect(*args: str, cwd: Path, pack: Path = PACK) -> dict:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
+def compiled_horizons(cwd: Path, name: str, *extra: str) -> list[tuple[str, int]]:
+    """(hash, horizon) of each plan of the pack's horizon suite, compiled in `cwd`."""
+    plans = cwd / f"plans-{name}"
+    result = dojo("compile", "suite=horizon_suite", f"out={plans}", *extra, cwd=cwd, pack=COLLECT_PACK)
+    assert result.returncode == 0, result.stderr
+    index = json.loads((plans / "index.json").read_text())
+    return [(e["hash"], json.loads((plans / e["path"]).read_text())["horizon"]) for e in index["plans"]]
+
+
 @pytest.mark.parametrize(("lengths", "auto_generated", "expected"), [
     ([100] * 10, False, 120),             # 100 x 1.2 exactly: no rounding up past 120
     ([100] * 10, True, 150),
@@ -131,7 +140,7 @@ def test_collect_resumes_keeps_successes_and_writes_horizons(tmp_path: Path) -> 
     more = collect(*args, "n=3", cwd=tmp_path)
     assert (more["kept"], more["attempted"]) == (3, 3)
     assert [f.stat().st_mtime_ns for f in files] == stamps
-    horizons = json.loads((out / "horizons.json").read_text())["tasks"]["settled_test"]
+    horizons = json.loads((tmp_path / "datasets" / "horizons.json").read_text())["tasks"]["settled_test"]
     assert horizons == {"demo_lengths": [1, 1, 1], "auto_generated": True, "horizon": 2}
     episodes = pq.read_table(out / "lerobot" / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
     assert episodes.column("robodojo/seed").to_pylist() == [1_000_000, 1_000_001, 1_000_002]
@@ -176,24 +185,26 @@ def test_collect_refuses_evaluation_only_tasks(tmp_path: Path) -> None:
 
 
 def test_collected_horizons_set_the_auto_horizons_of_compiled_suites(tmp_path: Path) -> None:
-    """`horizons.json` is what `dojo compile` / `dojo run` read (`horizons=`): the suite's plans get the auto
-    horizon of the collected demos instead of the task's fallback, and new plan hashes."""
+    """`dojo collect` merges the demo lengths into datasets/horizons.json, which `dojo compile` / `dojo run`
+    read by default: the suite's plans get the auto horizon of the collected demos instead of the task's
+    fallback, and new plan hashes; `horizons=null` keeps the fallback, a missing `horizons=PATH` is an error."""
     out = tmp_path / "ds"
+    compiled_before = compiled_horizons(tmp_path, "before")
     summary = collect("task=horizon_test", "n=2", "cameras=[head]", "depth=false", "num_envs=1", f"out={out}",
                       "format=[hdf5]", cwd=tmp_path, pack=COLLECT_PACK)
-    assert summary["horizons"] == str(out / "horizons.json") and summary["horizon"] == 2  # ceil(1 x 1.2)
-    horizons = json.loads((out / "horizons.json").read_text())
+    shared = tmp_path / "datasets" / "horizons.json"
+    assert summary["horizons"] == "datasets/horizons.json" and summary["horizon"] == 2  # ceil(1 x 1.2)
+    horizons = json.loads(shared.read_text())
     assert horizons["tasks"]["horizon_test"] == {"demo_lengths": [1, 1], "auto_generated": False, "horizon": 2}
 
-    def compiled(*extra: str) -> list[tuple[str, int]]:
-        plans = tmp_path / "plans-{}".format(len(extra))
-        result = dojo("compile", "suite=horizon_suite", f"out={plans}", *extra, cwd=tmp_path, pack=COLLECT_PACK)
-        assert result.returncode == 0, result.stderr
-        index = json.loads((plans / "index.json").read_text())
-        return [(e["hash"], json.loads((plans / e["path"]).read_text())["horizon"]) for e in index["plans"]]
-
-    with_demos, fallback = compiled(f"horizons={out / 'horizons.json'}"), compiled()
-    assert [h for _, h in with_demos] == [2, 2] and [h for _, h in fallback] == [6, 6]
+    with_demos = compiled_horizons(tmp_path, "auto")
+    fallback = compiled_horizons(tmp_path, "null", "horizons=null")
+    assert [h for _, h in with_demos] == [2, 2]
+    assert [h for _, h in fallback] == [h for _, h in compiled_before] == [6, 6]
+    assert compiled_horizons(tmp_path, "path", f"horizons={shared}") == with_demos
+    missing = dojo("compile", "suite=horizon_suite", f"out={tmp_path / 'x'}", "horizons=nowhere.json", cwd=tmp_path,
+                   pack=COLLECT_PACK)
+    assert missing.returncode != 0 and "horizons=nowhere.json: no such file" in missing.stderr
     assert not {d for d, _ in with_demos} & {d for d, _ in fallback}
 
 
