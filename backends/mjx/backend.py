@@ -41,6 +41,7 @@ from .cache import choose_impl, enable_compilation_cache
 from .render import CpuRenderer, RenderConfig, observation_images
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
+DELTA_JOINT, EE, DELTA_EE = (MODES.index(m) for m in ("delta_joint", "ee", "delta_ee"))  # ids the tick compares
 """Action modes by the id the tick receives per env."""
 INPUT_WIDTH = 2 * A.EE_PER_ARM
 """Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
@@ -96,11 +97,11 @@ class _DeviceHooks(Hooks):
         robot = self.robots[arr.bucket.key]
         q_arm = data.qpos[:, robot.qpos_adr]
         joint_dim = A.action_dim("joint", robot.limits.joints_per_arm)
-        q_now = jnp.where((mode == 1)[:, None, None], q_arm, 0.0)  # absolute rows add 0
+        q_now = jnp.where((mode == DELTA_JOINT)[:, None, None], q_arm, 0.0)  # absolute rows add 0
         q, grip, clipped = A.joint_targets(jnp, actions[:, :joint_dim], q_now, robot.limits, delta=True)
-        is_ee = mode >= 2
+        is_ee = (mode == EE) | (mode == DELTA_EE)
         q_ee, grip_ee, clipped_ee = jax.lax.cond(
-            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == 3),
+            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE),
             lambda: (q, grip, clipped))
         q = jnp.where(is_ee[:, None, None], q_ee, q)
         grip = jnp.where(is_ee[:, None], grip_ee, grip)
@@ -237,6 +238,8 @@ class MjxBackend(Backend):
             raise ValueError("one backend runs one embodiment (action layout)")
         self._buckets = make_buckets(list(self._known.values()))
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
+        self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
+                         for b in self._buckets for m in b.members}
         self._rows = [[] for _ in self._buckets]
         self._slots = []
         for s, plan in enumerate(plans):
@@ -352,6 +355,16 @@ class MjxBackend(Backend):
         when None), rendered per bucket in one call."""
         slots = [self._slots[i] for i in ids]
         obs = [self._observation(s, outputs) for s in slots]
+        fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+
+        def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
+            """One device-to-host copy of a bucket's qpos (and qvel when privileged) per call."""
+            if bucket not in fetched:
+                data = self._engine.data[bucket]
+                fetched[bucket] = (np.asarray(data.qpos, np.float64),
+                                   np.asarray(data.qvel, np.float64) if self.privileged else None)
+            return fetched[bucket]
+
         if self.render_config is not None:
             wanted = None if observe is None else {int(i) for i in observe}
             for k, renderer in enumerate(self._renderers):
@@ -359,24 +372,17 @@ class MjxBackend(Backend):
                           if s.bucket == k and (wanted is None or int(i) in wanted)]
                 if not picked:
                     continue
-                qpos = np.asarray(self._engine.data[k].qpos, np.float64)
+                qpos = state(k)[0]
                 frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
                                          [qpos[s.row] for _, s in picked])
                 for (o, _), images in zip(picked, observation_images(frames, self.render_config.cameras)):
                     o.update(images)
         if self.privileged:
-            fetched: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             for slot, o in zip(slots, obs):
-                if slot.bucket not in fetched:
-                    data = self._engine.data[slot.bucket]
-                    fetched[slot.bucket] = (np.asarray(data.qpos, np.float64), np.asarray(data.qvel, np.float64))
-                qpos, qvel = fetched[slot.bucket]
-                member = self._buckets[slot.bucket].members[self._member[slot.plan.hash][1]]
-                source = member.plan.model()
-                o["privileged"] = {
-                    "qpos": to_plan_layout(member.model, source, member.padded.names, qpos[slot.row]),
-                    "qvel": to_plan_layout(member.model, source, member.padded.names, qvel[slot.row], velocity=True),
-                    "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
+                qpos, qvel = state(slot.bucket)
+                layout = self._layouts[slot.plan.hash]
+                o["privileged"] = {"qpos": layout.qpos(qpos[slot.row]), "qvel": layout.qvel(qvel[slot.row]),
+                                   "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
         return obs
 
     def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
@@ -398,28 +404,47 @@ class MjxBackend(Backend):
     def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
         """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
         ids = resolve_ids(env_ids, self.num_envs)
-        out = []
-        for i in ids:
-            slot = self._slots[i]
-            member = self._buckets[slot.bucket].members[self._member[slot.plan.hash][1]]
-            q = np.asarray(self._engine.data[slot.bucket].qpos[slot.row])
-            out.append(to_plan_layout(member.model, member.plan.model(), member.padded.names, q))
+        slots = [self._slots[i] for i in ids]
+        out = [self._layouts[s.plan.hash].qpos(self._engine.data[s.bucket].qpos[s.row]) for s in slots]
         return np.stack(out) if out else np.zeros((0, 0))
 
 
-def to_plan_layout(padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str], values: np.ndarray,
-                   velocity: bool = False) -> np.ndarray:
-    """A padded model's qpos (or qvel, `velocity=True`) moved back into the plan's own model layout (for the
-    oracle, and for comparison with `mujoco`); parked slots are dropped."""
-    out = np.zeros(source.nv if velocity else source.nq)
-    adr_padded = padded.jnt_dofadr if velocity else padded.jnt_qposadr
-    adr_source = source.jnt_dofadr if velocity else source.jnt_qposadr
-    widths = {0: 6, 1: 3} if velocity else {0: 7, 1: 4}
-    for j in range(padded.njnt):
-        name = mujoco.mj_id2name(padded, mujoco.mjtObj.mjOBJ_JOINT, j)
-        src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, names.get(name, name))
-        if src < 0:
-            continue
-        width = widths.get(int(padded.jnt_type[j]), 1)
-        out[adr_source[src]:adr_source[src] + width] = values[adr_padded[j]:][:width]
-    return out
+@dataclass(frozen=True)
+class PlanLayout:
+    """Where each joint of a padded bucket model sits in the plan's own model: index maps that move a padded
+    qpos (or qvel) back into the plan's layout, for the oracle and for comparison with `mujoco`. Parked slots have
+    no place there and are dropped. Built once per bucket member: the map never changes while it runs."""
+
+    nq: int
+    nv: int
+    qpos_padded: np.ndarray
+    qpos_plan: np.ndarray
+    qvel_padded: np.ndarray
+    qvel_plan: np.ndarray
+
+    @classmethod
+    def build(cls, padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str]) -> "PlanLayout":
+        maps: dict[bool, tuple[list[int], list[int]]] = {False: ([], []), True: ([], [])}
+        for j in range(padded.njnt):
+            name = mujoco.mj_id2name(padded, mujoco.mjtObj.mjOBJ_JOINT, j)
+            src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, names.get(name, name))
+            if src < 0:
+                continue
+            for velocity, (pad_adr, src_adr, widths) in {
+                    False: (padded.jnt_qposadr, source.jnt_qposadr, {0: 7, 1: 4}),
+                    True: (padded.jnt_dofadr, source.jnt_dofadr, {0: 6, 1: 3})}.items():
+                width = widths.get(int(padded.jnt_type[j]), 1)
+                maps[velocity][0].extend(range(pad_adr[j], pad_adr[j] + width))
+                maps[velocity][1].extend(range(src_adr[src], src_adr[src] + width))
+        index = {v: tuple(np.asarray(ix, np.int64) for ix in pair) for v, pair in maps.items()}
+        return cls(source.nq, source.nv, *index[False], *index[True])
+
+    def qpos(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.nq)
+        out[self.qpos_plan] = np.asarray(values)[self.qpos_padded]
+        return out
+
+    def qvel(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.nv)
+        out[self.qvel_plan] = np.asarray(values)[self.qvel_padded]
+        return out

@@ -18,7 +18,7 @@ import jax
 import mujoco
 import numpy as np
 
-from .backend import to_plan_layout
+from .backend import PlanLayout
 from .batch import Engine
 from .bucket import make_buckets
 
@@ -53,6 +53,7 @@ def parity_report(plans: Sequence[Any], steps: int, tolerance: float = DEFAULT_T
     """Run every plan `steps` control steps on both backends and return one row per plan (input order)."""
     buckets = make_buckets(plans)
     where = {m.plan.hash: (k, i) for k, b in enumerate(buckets) for i, m in enumerate(b.members)}
+    layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names) for b in buckets for m in b.members}
     sizes = [len(b.members) for b in buckets]
     engine = Engine(buckets, sizes, impl)
     members = [np.arange(n, dtype=np.int32) for n in sizes]
@@ -76,8 +77,7 @@ def parity_report(plans: Sequence[Any], steps: int, tolerance: float = DEFAULT_T
             data.ctrl[:] = np.asarray(plan.init_ctrl) + sign * offset
             mujoco.mj_step(model, data, nstep=plan.n_substeps)
             k, i = where[plan.hash]
-            member = buckets[k].members[i]
-            q = to_plan_layout(member.model, model, member.padded.names, qpos[k][i])
+            q = layouts[plan.hash].qpos(qpos[k][i])
             j_err, b_err = _errors(model, q, data.qpos)
             joint_err[p], body_err[p] = max(joint_err[p], j_err), max(body_err[p], b_err)
             if first[p] is None and max(j_err, b_err) > tolerance:

@@ -8,7 +8,7 @@ import numpy as np
 from conftest import toy_plan
 from mujoco import mjx
 
-from dojo.backends.mjx.backend import to_plan_layout
+from dojo.backends.mjx.backend import PlanLayout
 from dojo.backends.mjx.bucket import make_buckets, structural_signature
 from dojo.backends.mjx.pad import GRAVCOMP_IN_USE, PARK_ORIGIN
 
@@ -50,8 +50,10 @@ def test_random_plans_with_different_clutter_share_one_padded_bucket():
             assert member.model.body_gravcomp[member.model.body(name).id] == GRAVCOMP_IN_USE
         # the plan's own state comes back unchanged from the padded layout
         source = member.plan.model()
-        back = to_plan_layout(member.model, source, member.padded.names, member.qpos)
-        np.testing.assert_allclose(back, member.plan.init_qpos)
+        layout = PlanLayout.build(member.model, source, member.padded.names)
+        np.testing.assert_allclose(layout.qpos(member.qpos), member.plan.init_qpos)
+        assert sorted(layout.qpos_plan) == list(range(source.nq))  # every plan coordinate has one source
+        assert sorted(layout.qvel_plan) == list(range(source.nv))
 
 
 def test_structural_signature_matches_mjx_static_structure():
