@@ -25,6 +25,7 @@ from rich.live import Live
 from rich.progress import BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn
 from rich.text import Text
 
+from dojo.compiler.task_checks import TRAINING_DIMENSIONS
 from dojo.runtime.episode import DIMENSION_NAMES, DIMENSIONS, EpisodeResult
 
 MODES = ("rich", "jsonl", "quiet")
@@ -128,7 +129,8 @@ class Progress:
             "interactions_per_s": round(self._interactions / elapsed, 2) if elapsed > 0 else None,
             "success_by_dimension": {
                 d: {"successes": s, "episodes": n, "success_pct": round(100.0 * s / n, 2)}
-                for d, (s, n) in ((d, self._dim_counts[d]) for d in DIMENSIONS if d in self._dim_counts)
+                for d, (s, n) in ((d, self._dim_counts[d]) for d in DIMENSIONS + TRAINING_DIMENSIONS
+                                  if d in self._dim_counts)
             },
         }
 

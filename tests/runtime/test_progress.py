@@ -55,6 +55,18 @@ def test_resumed_episodes_count_towards_done_but_not_speed(make_row):
     assert list(line["success_by_dimension"]) == ["precision", "open"]  # leaderboard order
 
 
+def test_training_only_episodes_are_shown_after_the_scored_dimensions(make_row):
+    """`dojo collect` of a DLC task: its successes are counted and drawn, after the five scored dimensions."""
+    clock, out = FakeClock(), io.StringIO()
+    progress = Progress(3, mode="rich", stream=out, clock=clock)
+    clock.now += 2
+    progress.episode_finished(make_row(dimension="dlc", task="dlc", success=True))
+    progress.episode_finished(make_row(dimension="memory", task="swap_T", episode=1))
+    progress.close()
+    assert list(progress.snapshot()["success_by_dimension"]) == ["memory", "dlc"]
+    assert "DLC (training only) 100.0% (1/1)" in out.getvalue()
+
+
 def test_quiet_mode_writes_nothing(make_row):
     out = io.StringIO()
     with Progress(2, mode="quiet", stream=out) as progress:
