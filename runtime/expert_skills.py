@@ -56,7 +56,7 @@ THIN_AXIS = 0.35
 """An object this much thinner across one axis than across another is gripped across the thin one."""
 RELEASE_STEPS = 8
 SETTLE_STEPS = 4
-PITCHES = (0.0, 0.35, 0.6, 0.85)
+PITCHES = (0.0, 0.35, 0.6, 0.85, 1.1, 1.35)
 """Forward tilts of the approach axis tried in turn when a top-down pose is out of reach (rad)."""
 REACH_TOL = 0.004
 PLACE_TRIES = 2
@@ -233,16 +233,22 @@ def _distance_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
 # ---- grasping ----
 
 def grasp_frame(ctx: SkillContext, obj: str) -> tuple[Box, np.ndarray]:
-    """The region to grasp (an annotation box, else the object's box) and the candidate finger axes."""
-    for annotation in ("grasp", "rim", "neck"):
-        if ctx.scene.has_site(obj, annotation):
-            site = ctx.scene.site(obj, annotation)
-            box = ctx.scene.box(obj)
-            if annotation == "rim":
-                return site, np.asarray([site.center - box.center])
-            return Box(site.center, box.rot, np.maximum(site.half, 1e-3)), box.rot[:, :2].T
+    """The region to grasp (an annotation box, else the object's box) and the candidate finger axes: the first
+    annotation that top-down fingers reach below the palm (a tall bottle's middle is out of their reach and
+    grasping just above it closes on the sloping shoulder, which slips out: its neck is taken instead)."""
     box = ctx.scene.box(obj)
+    names = [a for a in ("grasp", "rim", "neck") if ctx.scene.has_site(obj, a)]
+    reached = [a for a in names if _top(ctx.scene.site(obj, a)) >= box.top - PALM]
+    for annotation in reached[:1] or names[:1]:
+        site = ctx.scene.site(obj, annotation)
+        if annotation == "rim":
+            return site, np.asarray([site.center - box.center])
+        return Box(site.center, box.rot, np.maximum(site.half, 1e-3)), box.rot[:, :2].T
     return box, box.rot[:, :2].T
+
+
+def _top(region: Box) -> float:
+    return float(region.center[2] + np.abs(region.rot[2]) @ region.half)
 
 
 def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.ndarray) -> tuple[np.ndarray, float]:
@@ -271,8 +277,21 @@ def finger_axis(ctx: SkillContext, arm: int, obj: str, region: Box, axes: np.nda
     return best[1], best[2]
 
 
-def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
-    """Pick `obj` from above: pre-grasp, open just wide enough, descend, close, lift clear of the table."""
+def grasp_height(ctx: SkillContext, obj: str) -> float:
+    """The TCP height of a top-down grasp of `obj`: at its grasp region, no lower than its top allows the palm
+    and than the fingertips clear what it stands on."""
+    region, axes = grasp_frame(ctx, obj)
+    box = ctx.scene.box(obj)
+    support = box.bottom  # fingertips just above what the object stands on (flat things: a coin)
+    z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.15 * (box.top - support)))
+    if len(axes) > 1:  # fingertips no lower than the grasp region (a coin standing in a holder's groove)
+        z = max(z, float(region.center[2] - region.half[2]) + FINGERTIP)
+    return z
+
+
+def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3, pitch: float = 0.0) -> SkillGen:
+    """Pick `obj` from above: pre-grasp, open just wide enough, descend, close, lift clear of the table. The
+    gripper tilts `pitch` forward (or more, if the arm does not reach it so), for a drop that needs the tilt."""
     for _ in range(attempts):
         region, axes = grasp_frame(ctx, obj)
         box = ctx.scene.box(obj)
@@ -281,18 +300,14 @@ def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3) -> SkillGen:
             raise SkillFailed(f"{obj} is off the table or out of reach")
         start_center = float(box.center[2])
         axis, width = finger_axis(ctx, arm, obj, region, axes)
-        support = box.bottom  # fingertips just above what the object stands on (flat things: a coin)
-        z = max(float(region.center[2]), box.top - PALM, support + FINGERTIP + min(0.003, 0.15 * (box.top - support)))
-        if len(axes) > 1:  # fingertips no lower than the grasp region (a coin standing in a holder's groove)
-            z = max(z, float(region.center[2] - region.half[2]) + FINGERTIP)
-        point = np.array([*region.center[:2], z])
-        pose = ctx.reachable(arm, point, axis)
+        point = np.array([*region.center[:2], grasp_height(ctx, obj)])
+        pose = ctx.reachable(arm, point, axis, prefer=pitch)
         opening = min(1.0, (width + 0.03) / ctx.max_width)
         above = pose.shifted([0.0, 0.0, APPROACH])
         yield ctx.gripper(arm, opening, 1)
         yield ctx.line(arm, above, FAST)
         yield ctx.line(arm, pose, SLOW)
-        if box.top - support < THIN:
+        if box.top - box.bottom < THIN:
             # a coin: close slowly and squeeze gently (a hard squeeze presses the pads' edges past its thin
             # rim, onto its face), so that the pads hold it by the rim
             gentle = max(0.0, (width - THIN_SQUEEZE) / ctx.max_width)
@@ -332,13 +347,29 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     below = float(tcp[2] - box.bottom)
     safe = ctx.transfer_height((obj,), box.center, goal_center, below, container)
     axis = _rotate_z(ctx.tcp(arm).rot[:, 1], yaw_change)  # the object turns with the fingers, by yaw_change
+    if ctx.pitch[arm] > 0.0 and yaw_change == 0.0 and not precise:
+        axis = _follow_reach(ctx, arm, axis, tcp, goal_center)
     axis[2] = 0.0
     if yaw_change == 0.0 and np.dot(axis, ctx.natural_axis(arm, goal_center)) < 0.0:
         axis = -axis  # the same grasp turned half round: the wrist stays inside its range
 
+    # the object's corners in the gripper's frame: dropped into a container, its lowest corner in the attitude
+    # of the release stays as far above the rim as the planned drop asks (a tall bottle held by its top and
+    # tilted to reach over a high rim hangs lower than it stood)
+    corners = ctx.actual_tcp_rot(arm).T @ (_corners(box) - tcp).T
+    drop = float(goal_center[2] - (box.center[2] - box.bottom))
+
+    opening = ctx.scene.site(container, "inside") if container and ctx.scene.has_site(container, "inside") else None
+
     def holding(pitch: float) -> Pose:
         rot = ctx.orientation(arm, goal_center, axis, pitch)
-        return Pose(goal_center - rot @ local, rot)
+        centre = goal_center.copy()
+        if container is not None:
+            hanging = rot @ corners - (rot @ local)[:, None]  # corners round the object's centre [3, 8]
+            centre[2] = drop + float(-np.min(hanging[2]))
+            if opening is not None:
+                centre[:2] += _fit_over(opening, centre, hanging)
+        return Pose(centre - rot @ local, rot)
 
     pose = ctx.reachable_with(arm, holding, prefer=ctx.pitch[arm])
     here = ctx.tcp(arm)
@@ -350,6 +381,12 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     if here.pos[2] < safe:
         yield ctx.line(arm, Pose(np.array([*here.pos[:2], safe]), here.rot), CARRY, settle=0)
     above = Pose(np.array([*pose.pos[:2], max(safe, pose.pos[2])]), pose.rot)
+    outside = _outside_rim(ctx, arm, container, obj, here.pos, above.pos) if container else None
+    if outside is not None and above.pos[2] > min(safe, here.pos[2]) + 0.005:
+        # the arm could not lift the object over the rim where it picked it up (a tall bottle hangs far below
+        # the fingers): it climbs the rest of the way outside the rim and goes in level, where a rising
+        # diagonal would drag the object across the rim and shove the container
+        yield ctx.line(arm, Pose(np.array([*outside, above.pos[2]]), above.rot), CARRY, settle=0)
     yield ctx.line(arm, above, CARRY, settle=8)
     # where the object really hangs now (a heavy one turns in the fingers when the gripper tilts): correct
     # the release pose by what it is off, measured above the target, before going down
@@ -367,6 +404,46 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     yield ctx.line(arm, pose, speed_down)
     if release:
         yield from open_and_retreat(ctx, arm)
+        if outside is not None:  # back out over the rim level: a joint move home from inside would sweep it
+            back = ctx.tcp(arm)
+            yield ctx.line(arm, Pose(np.array([*outside, max(back.pos[2], above.pos[2])]), back.rot), FAST, settle=0)
+
+
+def _outside_rim(ctx: SkillContext, arm: int, container: str, obj: str, start: np.ndarray, goal: np.ndarray
+                 ) -> np.ndarray | None:
+    """The TCP's last point (xy) on the straight way from `start` to `goal` where the held object, as it hangs
+    round the TCP (a tilted bottle's bottom leads), is still clear of the container's footprint by CLEARANCE;
+    None if the way starts within that distance."""
+    tcp = ctx.actual_tcp(arm)
+    hang = float(np.max(np.linalg.norm(_corners(ctx.scene.box(obj))[:, :2] - tcp[:2], axis=1)))
+    bin_box = ctx.scene.box(container)
+    radius = float(np.max(bin_box.half[:2])) + hang + CLEARANCE
+    centre, a, d = bin_box.center[:2], start[:2], goal[:2] - start[:2]
+    # |a + t d - centre| = radius: the smaller root is where the way enters the circle
+    f = a - centre
+    qa, qb, qc = float(d @ d), 2.0 * float(f @ d), float(f @ f) - radius ** 2
+    if qc <= 0.0 or qa < 1e-9 or qb * qb - 4.0 * qa * qc < 0.0:
+        return None
+    t = (-qb - math.sqrt(qb * qb - 4.0 * qa * qc)) / (2.0 * qa)
+    return a + t * d if 0.0 < t < 1.0 else None
+
+
+def _fit_over(opening: Box, centre: np.ndarray, hanging: np.ndarray) -> np.ndarray:
+    """The least planar shift of a dropped object's centre that brings its footprint (corner offsets `hanging`
+    [3, 8] round `centre`) over the opening; the footprint centred on the opening when it is wider (a bottle
+    tilted to reach over a high rim, whose ends would come down on the rim)."""
+    axes = opening.rot[:2, :2]
+    local = axes.T @ (centre[:2] - opening.center[:2])
+    lo, hi = local + np.min(axes.T @ hanging[:2], axis=1), local + np.max(axes.T @ hanging[:2], axis=1)
+    half = opening.half[:2]
+    shift = np.where(hi - lo > 2.0 * half, -(lo + hi) / 2.0, np.clip(0.0, -half - lo, half - hi))
+    return axes @ shift
+
+
+def _corners(box: Box) -> np.ndarray:
+    """The eight corners [8, 3] of a box in the world."""
+    signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])
+    return box.center + signs @ (box.rot * box.half).T
 
 
 def open_and_retreat(ctx: SkillContext, arm: int) -> SkillGen:
@@ -414,6 +491,12 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
         return (not free, -round(min(clear, size) * 100.0),
                 float(np.linalg.norm(xy - ctx.planner.base_pos[arm, :2])))
 
+    if all(key(xy)[0] for xy in spots):
+        # the near half is taken (bottles standing in a bin): anywhere over the opening that keeps the object's
+        # centre in the placement box, rather than onto what stands there
+        wide = np.maximum(site.half[:2] - 0.01, 0.0)
+        spots = [site.center[:2] + site.rot[:2, :2] @ (wide * [u, v]) for u in np.linspace(-1, 1, 7)
+                 for v in np.linspace(-1, 1, 7)]
     xy = min(spots, key=key)
     rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
@@ -446,12 +529,46 @@ def place(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
             yield from relay(ctx, 1 - a, obj, a)
     for _ in range(PLACE_TRIES):
         yield from free_other_arm(ctx, a)
-        yield from grasp(ctx, a, obj)
+        pitch = upright_pitch(ctx, a, obj, place_center(ctx, a, obj, target), owner)
+        yield from grasp(ctx, a, obj, pitch=pitch)
         yield from carry_to(ctx, a, obj, place_center(ctx, a, obj, target), container=owner)
         yield ctx.hold(SETTLE_CHECK)  # a dropped object has landed before it is judged
         if placed(ctx, obj, target):
             return
         a = ctx.choose_arm(arm, ctx.scene.box(obj).center, goal)
+
+
+def upright_pitch(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, container: str | None = None
+                  ) -> float:
+    """The gripper tilt to grasp a tall object with (one at least twice as tall as wide) for carrying it from
+    where it stands to `goal`: the least tilt at which the arm holds it upright (grasped top-down, it hangs
+    from its top) with its bottom clear of everything in the way, at both ends. A top-down gripper does not
+    reach so high, and a tall object grasped top-down and tilted on the way leans out: it sweeps into the
+    bottles it passes and comes down across a bin's rim; grasped tilted, it hangs upright and drops in
+    bottom first. Zero for every other object, or when no tilt reaches."""
+    box = ctx.scene.box(obj)
+    if float(np.abs(box.rot[2]) @ box.half) < 2.0 * float(np.max(np.abs(box.rot[:2]) @ box.half)):
+        return 0.0
+    region, axes = grasp_frame(ctx, obj)
+    axis = finger_axis(ctx, arm, obj, region, axes)[0]
+    # a little higher than the bare need: the carry measures the grasp as it came out
+    need = ctx.transfer_height((obj,), box.center, goal, grasp_height(ctx, obj) - box.bottom, container) + 0.02
+    start, end = np.array([*region.center[:2], need]), np.array([goal[0], goal[1], need])
+    turned = _follow_reach(ctx, arm, axis, start, end)
+    for pitch in PITCHES:
+        if all(ctx.planner.ik(ctx._seed(arm, p), arm, Pose(p, ctx.orientation(arm, p, a, pitch)))[1] < REACH_TOL
+               for p, a in ((start, axis), (end, turned))):
+            return pitch
+    return 0.0
+
+
+def _follow_reach(ctx: SkillContext, arm: int, axis: np.ndarray, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """The finger axis `axis` at `start` turned about the vertical as the arm's reach direction turns from
+    `start` to `goal`: a gripper tilted towards its reach keeps its tilt towards the new reach direction, and
+    the object it holds then turns about the vertical only (kept fixed, the fingers would roll the gripper,
+    and a bottle grasped tilted would be set down on its edge and fall)."""
+    before, after = ctx.reach_dir(arm, start), ctx.reach_dir(arm, goal)
+    return _rotate_z(axis, math.atan2(before[0] * after[1] - before[1] * after[0], float(before @ after)))
 
 
 def placed(ctx: SkillContext, obj: str, target: str) -> bool:
@@ -475,7 +592,6 @@ def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
     """Hand `obj` from one arm to the other through the table: the giver sets it down at the free spot
     between the arms nearest the taker, where both reach it top-down."""
     yield from free_other_arm(ctx, giver)
-    yield from grasp(ctx, giver, obj)
     box = ctx.scene.box(obj)
     size = float(np.max(box.half[:2]))
     bases = ctx.planner.base_pos[:, :2]
@@ -488,7 +604,9 @@ def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
 
     xy = min(spots, key=key)
     height = float(np.abs(box.rot[2]) @ box.half)
-    yield from carry_to(ctx, giver, obj, np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006]))
+    goal = np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006])
+    yield from grasp(ctx, giver, obj, pitch=upright_pitch(ctx, giver, obj, goal))
+    yield from carry_to(ctx, giver, obj, goal)
 
 
 def stack(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
@@ -616,9 +734,12 @@ def home(ctx: SkillContext) -> SkillGen:
 
 
 def retreat(ctx: SkillContext, arm: int) -> SkillGen:
-    """Lift an arm that is low over the table, so that it can swing away without touching anything."""
+    """Lift an arm that is low over the table, so that it can swing away without touching anything: its
+    fingertips also clear the tops of the objects beside it (a gripper that let go of a bottle's neck with a
+    tilt backs off beside the bottle, at the height of the bottles' tops)."""
     here = ctx.tcp(arm)
-    floor = ctx.scene.table_z + MIN_TRANSFER
+    beside = ctx.scene.highest_top(tuple(ctx.held.values()), here.pos, 0.1)
+    floor = max(ctx.scene.table_z + MIN_TRANSFER, beside + CLEARANCE + FINGERTIP)
     if here.pos[2] < floor:
         yield ctx.line(arm, Pose(np.array([*here.pos[:2], floor]), here.rot), FAST, settle=0)
 
