@@ -545,8 +545,12 @@ def upright_pitch(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, conta
     top-down gripper does not reach so high beyond ~0.4 m from the arm's base: a cup carried as high as it
     reaches sweeps into the covers it passes, and a tall bottle (grasped top-down, it hangs from its top)
     tilted on the way leans out, into the bottles it passes and across a bin's rim. Grasped tilted, the
-    object hangs upright, passes over and drops in bottom first. Zero when top-down reaches, or no tilt does."""
+    object hangs upright, passes over and drops in bottom first. Zero when top-down reaches, or no tilt does,
+    and for squat objects other than covers set down outside a container."""
     box = ctx.scene.box(obj)
+    tall = float(np.abs(box.rot[2]) @ box.half) >= 2.0 * float(np.max(np.abs(box.rot[:2]) @ box.half))
+    if not tall and (container is not None or not ctx.scene.has_site(obj, "inside")):
+        return 0.0  # a block's edges, a fruit's curve slip in tilted fingers: only covers' bands are held tilted
     region, axes = grasp_frame(ctx, obj)
     axis = finger_axis(ctx, arm, obj, region, axes)[0]
     # a little higher than the bare need: the carry measures the grasp as it came out

@@ -18,13 +18,7 @@ from dojo.runtime.expert_validity import (
 
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "insert_tubes", "push_t",
          "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls", "swap_blocks"]
-BELOW_BAR = {
-    "cover_blocks": "78%: a cup handed over through the table, or set down over a block next to a covered one, "
-                    "sometimes tips over or lands on the block",
-    "put_bottles_into_dustbin": "6% (score 58.5; 50% before the mink/skill changes): a bottle carried in below the "
-                                "rim (as high as the arm reaches with the tilted gripper) pushes the free dustbin away, "
-                                "and later bottles land on the rim or on each other",
-}
+BELOW_BAR: dict[str, str] = {}
 """Tasks whose expert is below the 95% bar in the full table, and why (the README's validity table)."""
 CI_SEEDS = 3
 ZERO_HORIZON = 40
