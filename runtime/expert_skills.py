@@ -382,7 +382,9 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
         yield ctx.line(arm, Pose(np.array([*here.pos[:2], safe]), here.rot), CARRY, settle=0)
     above = Pose(np.array([*pose.pos[:2], max(safe, pose.pos[2])]), pose.rot)
     outside = _outside_rim(ctx, arm, container, obj, here.pos, above.pos) if container else None
-    if outside is not None and above.pos[2] > min(safe, here.pos[2]) + 0.005:
+    if outside is not None and above.pos[2] <= min(safe, here.pos[2]) + 0.005:
+        outside = None  # the object already clears the rim: in and out from above, as for any target
+    if outside is not None:
         # the arm could not lift the object over the rim where it picked it up (a tall bottle hangs far below
         # the fingers): it climbs the rest of the way outside the rim and goes in level, where a rising
         # diagonal would drag the object across the rim and shove the container

@@ -18,13 +18,16 @@ from dojo.runtime.expert_validity import (
 
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "insert_tubes", "push_t",
          "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls", "swap_blocks"]
-BELOW_BAR: dict[str, str] = {}
+BELOW_BAR = {
+    "classify_objects": "88% (score 94.0; 96% before the tilted-grasp and dustbin changes of 2026-11-24): on 6 of "
+                        "50 seeds a fruit or can is knocked off the table or a block is not grasped",
+}
 """Tasks whose expert is below the 95% bar in the full table, and why (the README's validity table)."""
 CI_SEEDS = 3
 ZERO_HORIZON = 40
 
 
-@pytest.mark.parametrize("task", [t for t in TASKS if t not in BELOW_BAR])
+@pytest.mark.parametrize("task", TASKS)
 def test_expert_solves_the_first_seeds(library, plan_cache, task):
     files = plan_files(library, [task], CI_SEEDS, plan_cache, jobs=2)[task]
     outcomes = run_policy(policies()["expert"], files, num_envs=CI_SEEDS)
