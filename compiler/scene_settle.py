@@ -49,8 +49,7 @@ def settle(model: mujoco.MjModel, data: mujoco.MjData, free_bodies: dict[str, st
     steps, at_rest = 0, False
     while not at_rest and steps < max_steps:
         before = _poses(data, ids)
-        for _ in range(window):
-            mujoco.mj_step(model, data)
+        mujoco.mj_step(model, data, nstep=window)
         steps += window
         moved, turned = _largest_change(before, _poses(data, ids))
         at_rest = steps >= min_steps and moved < REST_DISPLACEMENT and turned < REST_TURN_DEG
