@@ -72,6 +72,8 @@ PRECISE_ABOVE = 0.01
 """Height above its goal at which an insertion measures the held object once more (m)."""
 REACH = 0.5
 """Planar distance from an arm's base within which it grasps and places top-down."""
+RELAY_ROOM = 0.03
+"""Room (m) between a handed-over object and its neighbours that leaves space for the taker's open fingers."""
 
 
 class SkillContext:
@@ -475,33 +477,57 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
     owner = target.split("/", 1)[0]
     site = ctx.scene.site(owner, target.split("/", 1)[1])
     size = float(np.max(box.half[:2]))
-    room = np.maximum(site.half[:2] - size - 0.01, 0.0)
-    toward = ctx.planner.base_pos[arm, :2] - site.center[:2]
-    spots = [xy for xy in (site.center[:2] + site.rot[:2, :2] @ (room * [u, v]) for u in np.linspace(-1, 1, 5)
-                           for v in np.linspace(-1, 1, 5))
-             if float(np.dot(xy - site.center[:2], toward)) >= 0.0]  # the near half: never across a handle
+    base = ctx.planner.base_pos[arm, :2]
     inside = [ctx.scene.box(n) for n in ctx.scene.others((obj, owner))
               if np.all(np.abs(site.rot.T @ (ctx.scene.box(n).center - site.center)) <= site.half + 0.02)]
     floor = float(site.center[2] - site.half[2]) + 0.01
+    rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
     walls = [b for b in ctx.scene.geom_boxes(owner) if b.top > floor]  # walls, posts, a handle: not the floor
+    overhead = [b for b in walls if b.bottom > rim + 0.01]  # a handle arching over the opening
+
+    def near(xy: np.ndarray) -> bool:
+        """On the arm's side of a handle (its narrow axis), else in the half of the opening facing the arm:
+        an object carried across the handle would sweep into it."""
+        if overhead:
+            return all(_same_side(b, xy, base) for b in overhead)
+        return float(np.dot(xy - site.center[:2], base - site.center[:2])) >= 0.0
+
+    def grid(span: np.ndarray, n: int) -> list[np.ndarray]:
+        return [site.center[:2] + site.rot[:2, :2] @ (span * [u, v]) for u in np.linspace(-1, 1, n)
+                for v in np.linspace(-1, 1, n)]
+
+    def room(xy: np.ndarray) -> float:
+        return min((_footprint_distance(xy, b) for b in walls), default=np.inf) - size
 
     def key(xy: np.ndarray) -> tuple[bool, float, float]:
         free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.01 for b in inside)
         # room to every wall and the handle, in whole centimetres up to the object's size: a dropped object
         # lands clear of the rim (it tips over a wall it lands next to) and of a handle it would hit
-        clear = min((_footprint_distance(xy, b) for b in walls), default=np.inf) - size
-        return (not free, -round(min(clear, size) * 100.0),
-                float(np.linalg.norm(xy - ctx.planner.base_pos[arm, :2])))
+        return (not free, -round(min(room(xy), size) * 100.0), float(np.linalg.norm(xy - base)))
 
+    spots = [xy for xy in grid(np.maximum(site.half[:2] - size - 0.01, 0.0), 5) if near(xy)]
     if all(key(xy)[0] for xy in spots):
         # the near half is taken (bottles standing in a bin): anywhere over the opening that keeps the object's
         # centre in the placement box, rather than onto what stands there
-        wide = np.maximum(site.half[:2] - 0.01, 0.0)
-        spots = [site.center[:2] + site.rot[:2, :2] @ (wide * [u, v]) for u in np.linspace(-1, 1, 7)
-                 for v in np.linspace(-1, 1, 7)]
+        spots = grid(np.maximum(site.half[:2] - 0.01, 0.0), 7)
     xy = min(spots, key=key)
-    rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
+    if room(xy) < 0.0:
+        # nowhere a centimetre from the walls clears them and the handle too (an apple beside a basket's
+        # handle: coming down over it, it is caught between the fingers and the handle, and the basket is
+        # lifted with it): the spot of the near side with the most room, to the millimetre, however close
+        # to a wall, since a dropped object falls straight past it
+        fine = [xy for xy in grid(np.maximum(site.half[:2] - 0.005, 0.0), 13) if near(xy)]
+        best = min(fine, key=lambda p: (key(p)[0], -min(room(p), size), key(p)[2]))
+        if key(best)[0] == key(xy)[0] and room(best) > room(xy) + 0.002:
+            xy = best
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
+
+
+def _same_side(box: Box, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether planar points `a` and `b` lie on the same side of a box along its narrow horizontal axis."""
+    k = int(np.argmin(box.half[:2]))
+    axis = box.rot[:2, k]
+    return float(np.dot(a - box.center[:2], axis)) * float(np.dot(b - box.center[:2], axis)) >= 0.0
 
 
 def _footprint_distance(xy: np.ndarray, box: Box) -> float:
@@ -602,11 +628,20 @@ def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
     spots = [np.array([x, y]) for x in np.linspace(-0.12, 0.12, 7) for y in np.linspace(-0.22, -0.02, 5)]
     others = [ctx.scene.box(n) for n in ctx.scene.others((obj,))]
 
-    def key(xy: np.ndarray) -> tuple[bool, float]:
-        free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.03 for b in others)
-        return (not free, float(np.linalg.norm(xy - bases[taker])))
+    def clearance(xy: np.ndarray) -> float:
+        return min((float(np.linalg.norm(xy - b.center[:2])) - size - float(np.max(b.half[:2])) for b in others),
+                   default=np.inf)
+
+    def key(xy: np.ndarray) -> tuple[float, float]:
+        # every free spot alike, then the nearest the taker; when none is free, the one with the most room
+        return (-min(clearance(xy), RELAY_ROOM), float(np.linalg.norm(xy - bases[taker])))
 
     xy = min(spots, key=key)
+    if clearance(xy) < RELAY_ROOM:
+        # the objects stand between the arms: the table in front of them, nearer the bases, too (both arms
+        # reach it top-down); set down beside a neighbour, the taker's open fingers would land on it
+        front = [np.array([x, y]) for x in np.linspace(-0.12, 0.12, 7) for y in np.linspace(-0.34, -0.26, 3)]
+        xy = min(spots + front, key=key)
     height = float(np.abs(box.rot[2]) @ box.half)
     goal = np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006])
     yield from grasp(ctx, giver, obj, pitch=upright_pitch(ctx, giver, obj, goal))
