@@ -579,17 +579,23 @@ def upright_pitch(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, conta
     tall = float(np.abs(box.rot[2]) @ box.half) >= 2.0 * float(np.max(np.abs(box.rot[:2]) @ box.half))
     if not tall and (container is not None or not ctx.scene.has_site(obj, "inside")):
         return 0.0  # a block's edges, a fruit's curve slip in tilted fingers: only covers' bands are held tilted
+    return next((pitch for pitch in PITCHES if carries_over(ctx, arm, obj, goal, container, pitch)), 0.0)
+
+
+def carries_over(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, container: str | None = None,
+                 pitch: float = 0.0) -> bool:
+    """Whether the arm, gripping `obj` with the tilt `pitch`, holds it high enough above both ends of the way
+    to `goal` for its bottom to clear everything in the way (the carry goes no higher than the arm reaches
+    there: lower, it sweeps what stands between)."""
+    box = ctx.scene.box(obj)
     region, axes = grasp_frame(ctx, obj)
     axis = finger_axis(ctx, arm, obj, region, axes)[0]
     # a little higher than the bare need: the carry measures the grasp as it came out
     need = ctx.transfer_height((obj,), box.center, goal, grasp_height(ctx, obj) - box.bottom, container) + 0.02
     start, end = np.array([*region.center[:2], need]), np.array([goal[0], goal[1], need])
     turned = _follow_reach(ctx, arm, axis, start, end)
-    for pitch in PITCHES:
-        if all(ctx.planner.ik(ctx._seed(arm, p), arm, Pose(p, ctx.orientation(arm, p, a, pitch)))[1] < REACH_TOL
-               for p, a in ((start, axis), (end, turned))):
-            return pitch
-    return 0.0
+    return all(ctx.planner.ik(ctx._seed(arm, p), arm, Pose(p, ctx.orientation(arm, p, a, pitch)))[1] < REACH_TOL
+               for p, a in ((start, axis), (end, turned)))
 
 
 def _follow_reach(ctx: SkillContext, arm: int, axis: np.ndarray, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -620,7 +626,8 @@ def placed(ctx: SkillContext, obj: str, target: str) -> bool:
 
 def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
     """Hand `obj` from one arm to the other through the table: the giver sets it down at the free spot
-    between the arms nearest the taker, where both reach it top-down."""
+    between the arms nearest the taker that it carries the object to over everything in the way, where both
+    reach it top-down."""
     yield from free_other_arm(ctx, giver)
     box = ctx.scene.box(obj)
     size = float(np.max(box.half[:2]))
@@ -632,20 +639,31 @@ def relay(ctx: SkillContext, giver: int, obj: str, taker: int) -> SkillGen:
         return min((float(np.linalg.norm(xy - b.center[:2])) - size - float(np.max(b.half[:2])) for b in others),
                    default=np.inf)
 
+    height = float(np.abs(box.rot[2]) @ box.half)
+
+    def goal(xy: np.ndarray) -> np.ndarray:
+        return np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006])
+
     def key(xy: np.ndarray) -> tuple[float, float]:
         # every free spot alike, then the nearest the taker; when none is free, the one with the most room
         return (-min(clearance(xy), RELAY_ROOM), float(np.linalg.norm(xy - bases[taker])))
 
-    xy = min(spots, key=key)
-    if clearance(xy) < RELAY_ROOM:
+    def carried(xy: np.ndarray) -> bool:
+        # near its base, the giver cannot lift the object over a can it passes on the way: it would sweep it
+        if ctx.transfer_height((obj,), box.center, goal(xy), grasp_height(ctx, obj) - box.bottom) <= (
+                ctx.scene.table_z + MIN_TRANSFER):
+            return True  # nothing in the way stands higher than every carry goes
+        return carries_over(ctx, giver, obj, goal(xy), pitch=upright_pitch(ctx, giver, obj, goal(xy)))
+
+    xy = next((p for p in sorted(spots, key=key) if clearance(p) >= RELAY_ROOM and carried(p)), None)
+    if xy is None:
         # the objects stand between the arms: the table in front of them, nearer the bases, too (both arms
         # reach it top-down); set down beside a neighbour, the taker's open fingers would land on it
         front = [np.array([x, y]) for x in np.linspace(-0.12, 0.12, 7) for y in np.linspace(-0.34, -0.26, 3)]
-        xy = min(spots + front, key=key)
-    height = float(np.abs(box.rot[2]) @ box.half)
-    goal = np.array([xy[0], xy[1], ctx.scene.table_z + height + 0.006])
-    yield from grasp(ctx, giver, obj, pitch=upright_pitch(ctx, giver, obj, goal))
-    yield from carry_to(ctx, giver, obj, goal)
+        ranked = sorted(spots + front, key=key)
+        xy = next((p for p in ranked if carried(p)), ranked[0])
+    yield from grasp(ctx, giver, obj, pitch=upright_pitch(ctx, giver, obj, goal(xy)))
+    yield from carry_to(ctx, giver, obj, goal(xy))
 
 
 def stack(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
