@@ -729,7 +729,16 @@ def push_up(ctx: SkillContext, arm: str, obj: str, height: float) -> SkillGen:
     here = ctx.tcp(a)
     box = ctx.scene.box(obj)
     lift = max(0.0, ctx.scene.table_z + height + 0.02 - box.bottom)
-    yield ctx.line(a, here.shifted([0.0, 0.0, lift]), SLOW, settle=10)
+    # near its base a top-down arm lifts only ~12 cm above the table, and a tall object is held by its top:
+    # the gripper then tilts forward (the object hangs no lower for it) or also reaches outwards, as far as
+    # it needs to get that high
+    goal = here.shifted([0.0, 0.0, lift])
+    out, axis = ctx.reach_dir(a, here.pos), here.rot[:, 1]
+    reaches = iter(np.linspace(0.0, 0.2, 5))
+    while (ctx.planner.ik(ctx._seed(a, goal.pos), a, goal)[1] >= REACH_TOL
+           and (reach := next(reaches, None)) is not None):
+        goal = ctx.reachable(a, here.pos + [reach * out[0], reach * out[1], lift], axis)
+    yield ctx.line(a, goal, SLOW, settle=10)
 
 
 def push(ctx: SkillContext, arm: str, obj: str, target: str, tries: int = 3) -> SkillGen:
