@@ -508,16 +508,18 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
     spots = [xy for xy in grid(np.maximum(site.half[:2] - size - 0.01, 0.0), 5) if near(xy)]
     if all(key(xy)[0] for xy in spots):
         # the near half is taken (bottles standing in a bin): anywhere over the opening that keeps the object's
-        # centre in the placement box, rather than onto what stands there
-        spots = grid(np.maximum(site.half[:2] - 0.01, 0.0), 7)
+        # centre in the placement box, rather than onto what stands there (never across a handle: the carry
+        # would sweep into it)
+        spots = [xy for xy in grid(np.maximum(site.half[:2] - 0.01, 0.0), 7) if not overhead or near(xy)]
     xy = min(spots, key=key)
     if room(xy) < 0.0:
         # nowhere a centimetre from the walls clears them and the handle too (an apple beside a basket's
         # handle: coming down over it, it is caught between the fingers and the handle, and the basket is
-        # lifted with it): the spot of the near side with the most room, to the millimetre, however close
-        # to a wall, since a dropped object falls straight past it
+        # lifted with it): the spot of the near side with the most room, to the millimetre (then the nearest
+        # the arm: the first of two objects goes to the end of the strip, leaving room for the second), however
+        # close to a wall, since a dropped object falls straight past it
         fine = [xy for xy in grid(np.maximum(site.half[:2] - 0.005, 0.0), 13) if near(xy)]
-        best = min(fine, key=lambda p: (key(p)[0], -min(room(p), size), key(p)[2]))
+        best = min(fine, key=lambda p: (key(p)[0], -round(min(room(p), size) * 1000.0), key(p)[2]))
         if key(best)[0] == key(xy)[0] and room(best) > room(xy) + 0.002:
             xy = best
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
