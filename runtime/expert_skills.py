@@ -499,11 +499,11 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
     def room(xy: np.ndarray) -> float:
         return min((_footprint_distance(xy, b) for b in walls), default=np.inf) - size
 
-    def key(xy: np.ndarray) -> tuple[bool, float, float]:
+    def key(xy: np.ndarray, per_metre: float = 100.0) -> tuple[bool, float, float]:
         free = all(np.linalg.norm(xy - b.center[:2]) > size + float(np.max(b.half[:2])) + 0.01 for b in inside)
-        # room to every wall and the handle, in whole centimetres up to the object's size: a dropped object
-        # lands clear of the rim (it tips over a wall it lands next to) and of a handle it would hit
-        return (not free, -round(min(room(xy), size) * 100.0), float(np.linalg.norm(xy - base)))
+        # room to every wall and the handle, in whole centimetres (`per_metre`) up to the object's size: a
+        # dropped object lands clear of the rim (it tips over a wall it lands next to) and of a handle it would hit
+        return (not free, -round(min(room(xy), size) * per_metre), float(np.linalg.norm(xy - base)))
 
     spots = [xy for xy in grid(np.maximum(site.half[:2] - size - 0.01, 0.0), 5) if near(xy)]
     if all(key(xy)[0] for xy in spots):
@@ -519,7 +519,7 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
         # the arm: the first of two objects goes to the end of the strip, leaving room for the second), however
         # close to a wall, since a dropped object falls straight past it
         fine = [xy for xy in grid(np.maximum(site.half[:2] - 0.005, 0.0), 13) if near(xy)]
-        best = min(fine, key=lambda p: (key(p)[0], -round(min(room(p), size) * 1000.0), key(p)[2]))
+        best = min(fine, key=lambda p: key(p, per_metre=1000.0))
         if key(best)[0] == key(xy)[0] and room(best) > room(xy) + 0.002:
             xy = best
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
