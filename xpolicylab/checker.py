@@ -3,7 +3,8 @@
 Run it before spending simulator or robot time on a policy. It drives the whole request sequence an
 evaluation uses (hello, prepare_case, reset, infer x n, batched infer, heartbeat, trial_end) with synthetic
 observations for a chosen embodiment and camera set, validates every reply, and prints a pass/fail report
-with latency percentiles.
+with latency percentiles. In the native dialect it also lists every way the server's frames depart from
+upstream XPolicyLab's wire format (``conformance``), each with how many replies showed it.
 """
 
 from __future__ import annotations
@@ -14,10 +15,14 @@ from typing import Any
 
 import numpy as np
 
+from xpolicylab import codec
 from xpolicylab.client import PolicyClient
+from xpolicylab.conformance import array_departures, envelope_departures, payload_departures
 from xpolicylab.embodiments import ACTION_MODES, CAMERAS, Embodiment, get_embodiment
+from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import PolicyMetadata
 from xpolicylab.observations import noise_images, synthetic_observation
+from xpolicylab.protocol import UPSTREAM_FORMAT, Frame, parse_frame
 
 #: Slack on joint limits, radians: float32 rounding of a pose sitting exactly on its limit must pass.
 LIMIT_TOL = 1e-3
@@ -62,9 +67,9 @@ class CheckReport:
     def passed(self) -> bool:
         return bool(self.items) and all(item.ok for item in self.items)
 
-    def add(self, name: str, problems: Sequence[str], detail: str = "") -> bool:
+    def add(self, name: str, problems: Sequence[str], detail: str = "", limit: int = MAX_PROBLEMS) -> bool:
         ok = not problems
-        self.items.append(CheckItem(name, ok, detail if ok else "; ".join(problems[:MAX_PROBLEMS])))
+        self.items.append(CheckItem(name, ok, detail if ok else "; ".join(problems[:limit])))
         return ok
 
     def format(self) -> str:
@@ -162,12 +167,40 @@ def _step(report: CheckReport, name: str, fn: Any, record: bool = True) -> tuple
     return True, value
 
 
+class WireAudit:
+    """Collects the departures from the wire format of every reply the client receives, with their counts."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self.replies = 0
+
+    def __call__(self, raw: bytes, request: Frame | None) -> None:
+        self.replies += 1
+        try:
+            wire = codec.decode(raw)
+            departures = array_departures(raw)
+            if not isinstance(wire, dict):
+                raise ProtocolError(ErrorCode.INVALID_FRAME, "a frame must be a map")
+            departures += envelope_departures(wire, request)
+            batched = request is not None and "observations" in request.payload
+            departures += payload_departures(parse_frame(wire), batched)
+        except ProtocolError as exc:
+            departures = [f"frame: {exc.message}"]
+        for departure in departures:
+            self.counts[str(departure)] = self.counts.get(str(departure), 0) + 1
+
+    def problems(self) -> list[str]:
+        return [f"{text} ({count} of {self.replies} replies)" for text, count in self.counts.items()]
+
+
 def run_check(cfg: CheckConfig) -> CheckReport:
     """Run the whole check against a live server."""
     report = CheckReport(cfg)
     emb = get_embodiment(cfg.embodiment)
+    audit = WireAudit() if cfg.protocol == "xpolicylab" else None
     client = PolicyClient(cfg.url, cfg.protocol, token=cfg.token, recv_timeout_s=cfg.timeout_s,
-                          connect_timeout_s=cfg.timeout_s, max_connect_attempts=cfg.connect_attempts)
+                          connect_timeout_s=cfg.timeout_s, max_connect_attempts=cfg.connect_attempts,
+                          observer=audit)
     try:
         ok, meta = _step(report, "connect", client.connect, record=False)
         if not ok:
@@ -207,10 +240,14 @@ def run_check(cfg: CheckConfig) -> CheckReport:
                 else:
                     report.add("infer_batch", [f"env {i}: {p}" for i, chunk in enumerate(batch)
                                                for p in validate_chunk(chunk, emb, meta.action_mode, chunk_size)],
-                               f"{cfg.batch} environments in one request")
+                               f"{cfg.batch} environments " + ("in one request" if client.batches else
+                                                                "one request each (no capabilities.batch_infer)"))
         if cfg.protocol == "xpolicylab":
             _step(report, "heartbeat", client.heartbeat)
         _step(report, "trial_end", lambda: client.trial_end({"success": False, "score": 0.0}))
     finally:
         client.close()
+        if audit is not None and audit.replies:
+            problems = audit.problems()
+            report.add("wire format", problems, f"{audit.replies} replies follow {UPSTREAM_FORMAT}", limit=len(problems))
     return report

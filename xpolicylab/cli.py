@@ -138,10 +138,12 @@ def serve_main(args: Sequence[str]) -> int:
 
 @_exit_2_on_usage_error("check")
 def check_main(args: Sequence[str]) -> int:
-    """``xpolicylab check`` / ``dojo policy check``: 0 when every check passes, 1 otherwise."""
+    """``xpolicylab check [URL] [key=value ...]`` / ``dojo policy check``: 0 when every check passes, else 1."""
     if _wants_help(args):
         print(_help("check"))
         return 0
+    if args and args[0].startswith(("ws://", "wss://")):  # `xpolicylab check ws://...`, the URL first
+        args = [f"url={args[0]}", *args[1:]]
     opts, _ = parse(args, CHECK_OPTIONS, "xpolicylab check")
     if not opts["url"]:
         raise UsageError("`xpolicylab check` needs url=ws://HOST:PORT")

@@ -7,6 +7,10 @@
 * If the connection drops, the client reconnects, repeats ``hello`` and the current ``prepare_case`` (the
   trial's identifiers are kept), and retries the request once, so the current trial resumes.
 * Native dialect: replies are matched to requests by ``message_id``, so a heartbeat can run during an infer.
+  A reply that cannot be used (not a frame, or a malformed field: see ``conformance``) fails its request at
+  once with the field and the reason; one whose ``message_id`` cannot be read fails every pending request.
+  Servers that do not advertise ``capabilities.batch_infer`` (upstream XPolicyLab's) get one ``infer`` per
+  environment.
   openpi dialect: lock-step ``infer`` only; ``reset``/``prepare_case``/``trial_end`` have no openpi
   counterpart and are local no-ops.
 """
@@ -25,12 +29,16 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
 from xpolicylab import codec, transport
+from xpolicylab.conformance import fatal_problem
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Observation, PolicyMetadata
-from xpolicylab.protocol import REPLY_TO, Frame, MessageType, decode_frame, encode_frame
+from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, encode_frame, parse_frame,
+                                 readable_ids)
 from xpolicylab.stats import LatencyStats
 
 T = TypeVar("T")
+#: Sees every binary message the server sends, with the request it answers (``None`` when none matched).
+ReplyObserver = Callable[[bytes, "Frame | None"], None]
 
 
 class AuthError(ConnectionError):
@@ -53,6 +61,7 @@ class AsyncPolicyClient:
         backoff_s: float = 0.2,
         backoff_max_s: float = 5.0,
         max_frame_mb: float = 512.0,
+        observer: ReplyObserver | None = None,
     ) -> None:
         if protocol not in ("xpolicylab", "openpi"):
             raise ValueError(f"protocol must be 'xpolicylab' or 'openpi', got {protocol!r}")
@@ -72,7 +81,8 @@ class AsyncPolicyClient:
         self.server_info: dict[str, Any] = {}
         self._ws: ClientConnection | None = None
         self._reader: asyncio.Task[None] | None = None
-        self._pending: dict[str, asyncio.Future[Frame]] = {}
+        self.observer = observer
+        self._pending: dict[str, tuple[Frame, asyncio.Future[Frame]]] = {}
         self._lockstep = asyncio.Lock()
         self._reconnecting = asyncio.Lock()
         self._case: tuple[str | None, dict[str, Any]] | None = None
@@ -121,7 +131,9 @@ class AsyncPolicyClient:
         self._reader = asyncio.create_task(self._read_loop(self._ws))
         ack = await self._request(MessageType.HELLO, {"client": "xpolicylab", "protocol_version": "1.0"}, retry=False)
         self.server_info = ack.payload
-        self.metadata = PolicyMetadata.from_dict(dict(ack.payload.get("metadata") or {}))
+        # Upstream XPolicyLab servers send no metadata: name the policy after the server, keep the defaults.
+        declared = {"name": str(ack.payload.get("server", "unknown")), **(ack.payload.get("metadata") or {})}
+        self.metadata = PolicyMetadata.from_dict(declared)
         if self._case is not None:
             case_id, meta = self._case
             await self._request(MessageType.PREPARE_CASE, meta, action_case_id=case_id, retry=False)
@@ -133,7 +145,8 @@ class AsyncPolicyClient:
         if ws is not None:
             if self.protocol == "xpolicylab":
                 try:
-                    await ws.send(b"".join(encode_frame(Frame(MessageType.CLOSE, {"reason": "client done"}))))
+                    await ws.send(b"".join(encode_frame(Frame(MessageType.CLOSE, {"reason": "client done"},
+                                                                   evaluation_id=self.evaluation_id))))
                 except ConnectionClosed:
                     pass
             await ws.close()
@@ -157,10 +170,48 @@ class AsyncPolicyClient:
             await self.connect()
 
     def _fail_pending(self, exc: BaseException) -> None:
-        for fut in self._pending.values():
+        for _, fut in self._pending.values():
             if not fut.done():
                 fut.set_exception(exc)
         self._pending.clear()
+
+    def _fail(self, message_id: Any, exc: ProtocolError) -> None:
+        """Fail the request ``message_id`` answers, or every pending request when it names none of them."""
+        entry = self._pending.pop(str(message_id), None) if message_id != PLACEHOLDER_ID else None
+        if entry is None:
+            self._fail_pending(exc)
+        elif not entry[1].done():
+            entry[1].set_exception(exc)
+
+    def _deliver(self, parts: list[bytes | str]) -> None:
+        """Route one binary message to the request it answers, failing that request if the reply is unusable."""
+        try:
+            wire = codec.decode(parts)
+        except ProtocolError as exc:
+            self._fail_pending(ProtocolError(ErrorCode.INVALID_FRAME,
+                                             f"the server sent a message that cannot be decoded: {exc.message}"))
+            return
+        try:
+            frame = parse_frame(wire)
+        except ProtocolError as exc:
+            self._fail(readable_ids(wire)[0], ProtocolError(
+                ErrorCode.INVALID_FRAME, f"malformed reply from the server: {exc.message}", exc.details))
+            return
+        if frame.message_type is MessageType.ERROR:
+            err = ProtocolError(_code(frame.payload.get("code")), str(frame.payload.get("message", "")),
+                                frame.payload.get("details") or {})
+            self._fail(frame.message_id, err)  # an error naming no request: the server could not read ours
+            return
+        entry = self._pending.pop(str(frame.message_id), None)
+        if entry is None or entry[1].done():
+            return
+        request, fut = entry
+        problem = fatal_problem(frame, batched="observations" in request.payload)
+        if problem is None:
+            fut.set_result(frame)
+        else:
+            fut.set_exception(ProtocolError(ErrorCode.INVALID_FRAME, f"{frame.message_type.value} from the server: "
+                                            f"field {problem.field!r} {problem.message}", {"field": problem.field}))
 
     async def _read_loop(self, ws: ClientConnection) -> None:
         try:
@@ -168,22 +219,21 @@ class AsyncPolicyClient:
                 is_text, parts = await transport.recv_message(ws)
                 if is_text:
                     continue
-                try:
-                    frame = decode_frame(parts)
-                except ProtocolError:
-                    continue
-                fut = self._pending.pop(str(frame.message_id), None)
-                if frame.message_type is MessageType.ERROR:
-                    err = ProtocolError(_code(frame.payload.get("code")), str(frame.payload.get("message", "")),
-                                        frame.payload.get("details") or {})
-                    if fut is not None:
-                        fut.set_exception(err)
-                    elif not frame.message_id:  # the server could not read one of our frames
-                        self._fail_pending(err)
-                elif fut is not None and not fut.done():
-                    fut.set_result(frame)
+                if self.observer is not None:
+                    raw = b"".join(bytes(p) for p in parts)
+                    self.observer(raw, self._request_of(raw))
+                self._deliver(parts)
         except ConnectionClosed as exc:
             self._fail_pending(ConnectionError(f"connection closed: {exc}"))
+
+    def _request_of(self, raw: bytes) -> Frame | None:
+        """The pending request a raw reply names, for the observer (before delivery removes it)."""
+        try:
+            message_id = readable_ids(codec.decode(raw))[0]
+        except ProtocolError:
+            return None
+        entry = self._pending.get(str(message_id))
+        return entry[0] if entry is not None else None
 
     # ----------------------------------------------------------------------------------------------- requests
     async def _request(self, kind: MessageType, payload: dict[str, Any], *, step: int = 0,
@@ -198,7 +248,7 @@ class AsyncPolicyClient:
                           else self._trial.get("action_case_id"),
                           trial_id=self._trial.get("trial_id"), repeat_index=self._trial.get("repeat_index"))
             fut: asyncio.Future[Frame] = asyncio.get_running_loop().create_future()
-            self._pending[frame.message_id] = fut
+            self._pending[frame.message_id] = (frame, fut)
             try:
                 await transport.send_chunks(ws, encode_frame(frame))
                 reply = await asyncio.wait_for(fut, self.recv_timeout_s)
@@ -289,13 +339,20 @@ class AsyncPolicyClient:
         if len(obs_list) != len(env_ids):
             raise ValueError("obs_list and env_ids must have the same length")
         request = {"observations": list(obs_list), "env_ids": list(env_ids)}
+        if not self.batches:
+            return np.stack([await self.infer(o, step) for o in obs_list])
         if self.protocol == "openpi":
-            if not self.metadata or not self.metadata.batch:
-                return np.stack([await self.infer(o, step) for o in obs_list])
             reply = await self._timed(self._openpi_infer(request))
         else:
             reply = (await self._timed(self._request(MessageType.INFER, request, step=step))).payload
         return np.asarray(reply["actions"])
+
+    @property
+    def batches(self) -> bool:
+        """Whether the server answers a batched ``infer`` (else ``infer_batch`` sends one request per env)."""
+        if self.protocol == "openpi":
+            return bool(self.metadata and self.metadata.batch)
+        return (self.server_info.get("capabilities") or {}).get("batch_infer") is True
 
     async def trial_end(self, result: dict[str, Any]) -> dict[str, Any]:
         """Report a trial's outcome to the policy."""
@@ -357,6 +414,10 @@ class PolicyClient:
     @property
     def reconnects(self) -> int:
         return self._client.reconnects
+
+    @property
+    def batches(self) -> bool:
+        return self._client.batches
 
     def connect(self) -> PolicyMetadata:
         return self._run(self._client.connect())

@@ -1,9 +1,16 @@
 """The native dialect: the public XPolicyLab WebSocket protocol, plus a compatible batched ``infer``.
 
-Every frame is one binary MessagePack map
-``{message_type, message_id, evaluation_id, action_case_id, trial_id, repeat_index, step, sent_at, payload}``.
-A reply copies the request's identifiers (``message_id`` included, which is how a client matches replies to
-requests) and ``step``. ``error`` replaces the paired reply and carries ``{code, message, details}``.
+The format follows upstream XPolicyLab's ``client_server/ws`` package (``UPSTREAM_FORMAT``). Every frame is one
+binary MessagePack map
+``{message_type, message_id, evaluation_id, action_case_id, trial_id, repeat_index, step, sent_at, payload}``:
+``message_id`` and ``evaluation_id`` are required strings, ``step`` an integer, ``sent_at`` an ISO-8601 UTC string
+(a number of seconds since the epoch is still read, as older clients sent one), numpy arrays are msgpack-numpy
+maps. A reply copies the request's identifiers (``message_id`` included, which is how a client matches replies
+to requests) and ``step``. Replies to ``prepare_case``/``reset``/``trial_end`` carry ``{"ok": true, "result": ...}``
+(``result`` only when the hook returned something); ``infer_result`` carries ``actions`` and ``latency_ms``;
+``error`` replaces the paired reply and carries ``{code, message, details}``. An error answering a frame that
+could not be read carries whatever ids could be read from its raw map, else ``PLACEHOLDER_ID``, so that every
+error frame decodes in every client.
 
 Extension (advertised in ``hello_ack`` as ``capabilities.batch_infer``): an ``infer`` payload
 ``{observations: [obs, ...], env_ids: [id, ...]}`` is answered by one ``get_action_batch`` call with
@@ -14,10 +21,11 @@ Extension (advertised in ``hello_ack`` as ``capabilities.batch_infer``): an ``in
 from __future__ import annotations
 
 import enum
-import time
+import math
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from typing import Any
 
 from xpolicylab import codec
@@ -25,6 +33,10 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 
 PROTOCOL_VERSION = "1.0"
 SERVER_NAME = "xpolicylab_policy_server"
+#: The upstream release whose wire format this module follows (README: "XPolicyLab compatibility").
+UPSTREAM_FORMAT = "XPolicyLab client_server/ws at 7198143e (main, 2026-07-22)"
+#: Stands in for an id that could not be read from a malformed frame (upstream clients need a string there).
+PLACEHOLDER_ID = ""
 
 
 class MessageType(str, enum.Enum):
@@ -60,6 +72,15 @@ REQUESTS = frozenset(REPLY_TO) | {MessageType.CLOSE}
 _ID_FIELDS = ("evaluation_id", "action_case_id", "trial_id")
 
 
+def utc_now_iso() -> str:
+    """The current time as upstream writes ``sent_at``: ISO-8601 with the UTC offset."""
+    return datetime.now(timezone.utc).isoformat()
+
+
+def _iso_from_epoch(seconds: float) -> str:
+    return datetime.fromtimestamp(seconds, timezone.utc).isoformat()
+
+
 @dataclass
 class Frame:
     """One protocol frame."""
@@ -72,14 +93,14 @@ class Frame:
     trial_id: str | None = None
     repeat_index: int | None = None
     step: int = 0
-    sent_at: float = field(default_factory=time.time)
+    sent_at: str = field(default_factory=utc_now_iso)
 
     def to_wire(self) -> dict[str, Any]:
-        """The frame as the map that goes on the wire."""
+        """The frame as the map that goes on the wire (the two required ids never ``nil``)."""
         return {
             "message_type": self.message_type.value,
-            "message_id": self.message_id,
-            "evaluation_id": self.evaluation_id,
+            "message_id": self.message_id if self.message_id is not None else PLACEHOLDER_ID,
+            "evaluation_id": self.evaluation_id if self.evaluation_id is not None else PLACEHOLDER_ID,
             "action_case_id": self.action_case_id,
             "trial_id": self.trial_id,
             "repeat_index": self.repeat_index,
@@ -131,14 +152,67 @@ def parse_frame(wire: Any) -> Frame:
         raise ProtocolError(ErrorCode.INVALID_FRAME, "field 'payload' must be a map", {"field": "payload"})
     ids = {key: _optional(wire, key, (str, int)) for key in _ID_FIELDS}
     step = _optional(wire, "step", (int,))
-    sent_at = _optional(wire, "sent_at", (int, float))
     return Frame(
-        message_type, payload, message_id if message_id is not None else "",
+        message_type, payload, message_id if message_id is not None else PLACEHOLDER_ID,
         ids["evaluation_id"], ids["action_case_id"], ids["trial_id"],
-        _optional(wire, "repeat_index", (int,)), step or 0, float(sent_at) if sent_at is not None else 0.0,
+        _optional(wire, "repeat_index", (int,)), step or 0, _sent_at(wire),
     )
+
+
+def _sent_at(wire: dict) -> str:
+    """``sent_at`` as an ISO string: upstream writes one; older clients wrote seconds since the epoch."""
+    value = _optional(wire, "sent_at", (str, int, float))
+    if value is None:
+        return ""
+    if isinstance(value, str):
+        try:
+            datetime.fromisoformat(value)
+        except ValueError:
+            raise ProtocolError(ErrorCode.INVALID_FRAME, f"field 'sent_at' must be an ISO-8601 time, got {value!r}",
+                                {"field": "sent_at"}) from None
+        return value
+    if not math.isfinite(value) or not 0 <= value < 1e11:
+        raise ProtocolError(ErrorCode.INVALID_FRAME, f"field 'sent_at' is not a time: {value!r}", {"field": "sent_at"})
+    return _iso_from_epoch(float(value))
+
+
+def readable_ids(wire: Any) -> tuple[str | int, str | int]:
+    """``(message_id, evaluation_id)`` of a raw map that failed validation, placeholders where unreadable.
+
+    An error frame answering a malformed request carries them, so the sender can match the error to its request.
+    """
+    if not isinstance(wire, dict):
+        return PLACEHOLDER_ID, PLACEHOLDER_ID
+
+    def read(key: str) -> str | int:
+        value = wire.get(key)
+        ok = isinstance(value, (str, int)) and not isinstance(value, bool)
+        return value if ok else PLACEHOLDER_ID
+
+    return read("message_id"), read("evaluation_id")
+
+
+def error_for_unreadable(wire: Any, exc: ProtocolError) -> Frame:
+    """The ``error`` frame answering a message that is not a valid frame (``wire`` is its decoded map, if any)."""
+    message_id, evaluation_id = readable_ids(wire)
+    return Frame(MessageType.ERROR, exc.to_payload(), message_id, evaluation_id)
 
 
 def decode_frame(fragments: Sequence[bytes | bytearray | memoryview] | bytes) -> Frame:
     """Decode and validate one binary message as a frame."""
     return parse_frame(codec.decode(fragments))
+
+
+def decode_frame_or_error(fragments: Sequence[bytes | bytearray | memoryview] | bytes) -> tuple[Frame | None, Frame | None]:
+    """``(frame, None)``, or ``(None, error frame)`` when the message is not a valid frame.
+
+    The error frame carries the ids that could be read from the raw map (see ``error_for_unreadable``).
+    """
+    try:
+        wire = codec.decode(fragments)
+    except ProtocolError as exc:
+        return None, error_for_unreadable(None, exc)
+    try:
+        return parse_frame(wire), None
+    except ProtocolError as exc:
+        return None, error_for_unreadable(wire, exc)

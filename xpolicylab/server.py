@@ -39,7 +39,8 @@ from websockets.http11 import Request, Response
 from xpolicylab import codec, transport
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, as_model
-from xpolicylab.protocol import PROTOCOL_VERSION, REQUESTS, SERVER_NAME, Frame, MessageType, decode_frame, encode_frame
+from xpolicylab.protocol import (PROTOCOL_VERSION, REQUESTS, SERVER_NAME, UPSTREAM_FORMAT, Frame, MessageType,
+                                 decode_frame_or_error, encode_frame, error_for_unreadable)
 
 logger = logging.getLogger(__name__)
 
@@ -222,7 +223,7 @@ class PolicyServer:
         """What ``hello_ack`` says about this server and its policy."""
         return {
             "ok": True, "server": SERVER_NAME, "server_instance_id": self.instance_id,
-            "protocol_version": PROTOCOL_VERSION, "metadata": self._metadata.to_dict(),
+            "protocol_version": PROTOCOL_VERSION, "wire_format": UPSTREAM_FORMAT, "metadata": self._metadata.to_dict(),
             "capabilities": {"batch_infer": True, "native_batch": self._metadata.batch,
                              "max_frame_bytes": int(self.config.max_frame_mb * (1 << 20))},
         }
@@ -293,13 +294,13 @@ class PolicyServer:
         try:
             while True:
                 is_text, parts = await transport.recv_message(ws)
-                try:
-                    if is_text:
-                        raise ProtocolError(ErrorCode.INVALID_FRAME, "text frames are not part of the protocol; "
-                                            "send binary MessagePack")
-                    frame = decode_frame(parts)
-                except ProtocolError as exc:
-                    await transport.send_chunks(ws, encode_frame(Frame(MessageType.ERROR, exc.to_payload(), "")))
+                if is_text:
+                    frame, error = None, error_for_unreadable(None, ProtocolError(
+                        ErrorCode.INVALID_FRAME, "text frames are not part of the protocol; send binary MessagePack"))
+                else:
+                    frame, error = decode_frame_or_error(parts)
+                if frame is None:
+                    await transport.send_chunks(ws, encode_frame(error))
                     continue
                 if frame.message_type is MessageType.CLOSE:
                     await ws.close(reason="client sent close")
