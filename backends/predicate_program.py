@@ -41,11 +41,12 @@ their last output, and a reset replaces their memory rows with `init_memory` row
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import pairwise
 from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
+
+from dojo.language import predicates as words
 
 from . import predicates as P
 from .predicate_state import BODY, CONST, SITE, StateIndex, mujoco_state
@@ -56,90 +57,8 @@ ROBOT_ATOMS = ("left_arm", "right_arm")
 TABLE = "table"
 
 
-@dataclass(frozen=True)
-class On:
-    a: int
-    support: int
-    touch: tuple[tuple[int, ...], tuple[int, ...]] | None
-    """Atoms of a and b that must touch; None when b is a region (nothing to touch)."""
-
-
-@dataclass(frozen=True)
-class Inside:
-    a: int
-    container: int
-    up: float
-
-
-@dataclass(frozen=True)
-class Upright:
-    a: int
-
-
-@dataclass(frozen=True)
-class Lifted:
-    a: int
-    height: float
-
-
-@dataclass(frozen=True)
-class JointBound:
-    joint: int
-    value: float
-    at_least: bool
-
-
-@dataclass(frozen=True)
-class Aligned:
-    a: int
-    target: int
-    pos_tol: float
-    yaw_tol: float
-
-
-@dataclass(frozen=True)
-class Near:
-    a: int
-    b: int
-    distance: float
-    planar: bool
-
-
-@dataclass(frozen=True)
-class Touched:
-    a: tuple[int, ...]
-    b: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class Pressed:
-    press: int
-    times: int
-
-
-@dataclass(frozen=True)
-class Ordered:
-    children: tuple[Node, ...]
-    first: int
-    """Slot of the first child in memory["first"]; the children use consecutive slots."""
-
-
-@dataclass(frozen=True)
-class AllOf:
-    children: tuple[Node, ...]
-
-
-@dataclass(frozen=True)
-class AnyOf:
-    children: tuple[Node, ...]
-
-
-@dataclass(frozen=True)
-class Not:
-    child: Node
-
-
-Node = On | Inside | Upright | Lifted | JointBound | Aligned | Near | Touched | Pressed | Ordered | AllOf | AnyOf | Not
+Node = Any
+"""A compiled predicate: a frozen dataclass defined by its word's module in `dojo.language.predicates`."""
 
 
 @dataclass(frozen=True)
@@ -350,9 +269,20 @@ class _Compiler:
         self.press_slots[obj] = len(self.presses) - 1
         return self.press_slots[obj]
 
+    def group_members(self, group: str) -> list[str]:
+        """The objects of a group, in a fixed order (quantifiers expand over them)."""
+        return sorted(n for n, o in self.plan.objects.items() if o.get("group") == group)
+
+    def order_slots(self, n: int) -> int:
+        """Reserve n consecutive slots of `ordered` memory; returns the first."""
+        first = self.n_order
+        self.n_order += n
+        return first
+
     # ---- predicates ----
 
     def node(self, pred: dict, bound: str | None = None) -> Node:
+        """Compile one predicate through its word (`dojo.language.predicates`); `_` refers to `bound`."""
         (name, arg), = pred.items()
 
         def ref(r: str) -> str:
@@ -362,48 +292,10 @@ class _Compiler:
                 return bound + r[1:]
             return r
 
-        if name == "on":
-            a, b = ref(arg[0]), ref(arg[1])
-            touch = None if self.is_region(b) else (self.atoms_of(a), self.atoms_of(b))
-            return On(self.frame(a), self.annotated_frame(b, "top"), touch)
-        if name == "stacked":
-            refs = [ref(r) for r in arg]
-            return AllOf(tuple(self.node({"on": [top, below]}) for below, top in pairwise(refs)))
-        if name == "inside":
-            a, c = ref(arg[0]), ref(arg[1])
-            up = P.REGION_HEIGHT if self.is_region(c) else 0.0
-            return Inside(self.frame(a), self.annotated_frame(c, "inside"), up)
-        if name == "upright":
-            return Upright(self.frame(ref(arg)))
-        if name == "lifted":
-            return Lifted(self.frame(ref(arg[0])), float(arg[1]))
-        if name in ("joint_at_least", "joint_at_most"):
-            return JointBound(self.joint(ref(arg[0])), float(arg[1]), name == "joint_at_least")
-        if name == "aligned":
-            return Aligned(self.frame(ref(arg["object"])), self.frame(ref(arg["target"])),
-                           float(arg.get("pos_tol", 0.02)), float(arg.get("yaw_tol", 10.0)))
-        if name == "near":
-            b = ref(arg[1])
-            return Near(self.frame(ref(arg[0])), self.frame(b), float(arg[2]), self.is_region(b))
-        if name == "touched":
-            return Touched(self.atoms_of(ref(arg[0])), self.atoms_of(ref(arg[1])))
-        if name == "pressed":
-            return Pressed(self.press(ref(arg[0])), int(arg[1]))
-        if name == "ordered":
-            children = tuple(self.node(p, bound) for p in arg)
-            first = self.n_order
-            self.n_order += len(children)
-            return Ordered(children, first)
-        if name in ("all", "any"):
-            children = tuple(self.node(p, bound) for p in arg)
-            return AllOf(children) if name == "all" else AnyOf(children)
-        if name == "not":
-            return Not(self.node(arg, bound))
-        if name in ("forall", "exists"):
-            members = sorted(n for n, o in self.plan.objects.items() if o.get("group") == arg["group"])
-            children = tuple(self.node(arg["holds"], m) for m in members)
-            return AllOf(children) if name == "forall" else AnyOf(children)
-        raise ProgramError(f"unknown predicate {name!r}")
+        word = words.word(name)
+        if word is None:
+            raise ProgramError(f"unknown predicate {name!r}")
+        return word.compile(self, arg, ref, bound)
 
     def geom_atom(self) -> tuple[int, ...]:
         n = len(self.atom_bodies)
@@ -483,50 +375,14 @@ class _Evaluator:
         return self.values[node]
 
     def _eval(self, node: Node) -> Array:
-        xp = self.xp
-        if isinstance(node, On):
-            return P.on(xp, self.frame(node.a), self.frame(node.support), self.touching(node.touch))
-        if isinstance(node, Inside):
-            return P.inside(xp, self.frame(node.a), self.frame(node.container), node.up)
-        if isinstance(node, Upright):
-            return P.upright(xp, self.state["mat"][:, node.a])
-        if isinstance(node, Lifted):
-            pos, mat, c, _ = self.frame(node.a)
-            return P.lifted(xp, pos, mat, c, self.params["init_center"][:, node.a], node.height)
-        if isinstance(node, JointBound):
-            q = self.state["qpos"][:, node.joint]
-            return (P.joint_at_least if node.at_least else P.joint_at_most)(xp, q, node.value)
-        if isinstance(node, Aligned):
-            return P.aligned(xp, self.frame(node.a), self.frame(node.target), node.pos_tol, node.yaw_tol)
-        if isinstance(node, Near):
-            return P.near(xp, self.frame(node.a), self.frame(node.b), node.distance, node.planar)
-        if isinstance(node, Touched):
-            return P.touched(xp, self.state["contact"], node.a, node.b)
-        if isinstance(node, Pressed):
-            return self.press_count[:, node.press] >= node.times
-        if isinstance(node, Ordered):
-            firsts = []
-            for k, child in enumerate(node.children):
-                prev = self.memory["first"][:, node.first + k]
-                now = self.eval(child)
-                firsts.append(xp.where((prev < 0) & now, self.step, prev))
-                self.first_updates[node.first + k] = firsts[-1]
-            seen = xp.all(xp.stack([f >= 0 for f in firsts], axis=-1), axis=-1)
-            in_order = xp.all(xp.stack([a <= b for a, b in pairwise(firsts)], axis=-1), axis=-1)
-            return seen & in_order
-        if isinstance(node, AllOf):
-            out = xp.ones((self.n,), dtype=bool)
-            for child in node.children:
-                out = out & self.eval(child)
-            return out
-        if isinstance(node, AnyOf):
-            out = xp.zeros((self.n,), dtype=bool)
-            for child in node.children:
-                out = out | self.eval(child)
-            return out
-        if isinstance(node, Not):
-            return ~self.eval(node.child)
-        raise TypeError(f"not a predicate node: {node!r}")
+        evaluate = words.evaluator(type(node))
+        if evaluate is None:
+            raise TypeError(f"not a predicate node: {node!r}")
+        return evaluate(self, node)
+
+    def record_first(self, slot: int, first: Array) -> None:
+        """The updated first-true step of `ordered` memory slot `slot` (kept by `program_step`)."""
+        self.first_updates[slot] = first
 
 
 def _columns(xp: Any, cols: list[Array], like: Array) -> Array:

@@ -24,6 +24,9 @@ import jsonschema
 from jsonschema import ValidationError
 from referencing import Registry, Resource
 
+from dojo.language import predicates as predicate_words
+from dojo.language import skills as skill_words
+
 from .spec_errors import JsonPath, SpecProblem, did_you_mean
 from .spec_yaml import Located
 
@@ -55,12 +58,23 @@ def schema_dir() -> Path:
     return Path(str(resources.files("dojo.specs") / "schemas"))
 
 
-@lru_cache(maxsize=1)
 def load_schemas() -> dict[str, dict]:
-    """All schemas by file stem (`task`, `common`, ...)."""
+    """All schemas by file stem (`task`, `common`, ...), the task language's words filled in from their registry."""
+    return _load_schemas(_vocabulary_version())
+
+
+def _vocabulary_version() -> tuple[int, int]:
+    return predicate_words.version(), skill_words.version()
+
+
+@lru_cache(maxsize=2)
+def _load_schemas(vocabulary_version: tuple[int, int]) -> dict[str, dict]:
     out = {}
     for path in sorted(schema_dir().glob("*.schema.json")):
         out[path.name.removesuffix(".schema.json")] = json.loads(path.read_text(encoding="utf-8"))
+    # The file lists the built-in words for readers; the registries are the truth (a test keeps them equal).
+    out["task"]["$defs"]["predicate"]["properties"] = predicate_words.schema_properties()
+    out["task"]["$defs"]["skill"]["properties"]["skill"] = skill_words.schema_property()
     return out
 
 
@@ -101,10 +115,14 @@ def _validator_class() -> type:
     return jsonschema.validators.extend(base, {"x-relpath": _relpath_keyword})
 
 
-@lru_cache(maxsize=None)
 def validator_for(kind: str) -> Any:
     """A reusable validator for one spec kind, with every built-in schema resolvable by `$ref`."""
-    schemas = load_schemas()
+    return _validator_for(kind, _vocabulary_version())
+
+
+@lru_cache(maxsize=None)
+def _validator_for(kind: str, vocabulary_version: tuple[int, int]) -> Any:
+    schemas = _load_schemas(vocabulary_version)
     resources_ = [(SCHEMA_BASE + f"{name}.schema.json", Resource.from_contents(s)) for name, s in schemas.items()]
     registry = Registry().with_resources(resources_)
     return _validator_class()(schemas[kind], registry=registry)

@@ -7,7 +7,7 @@ or worse, evaluate to a constant: these checks make it a located error at `dojo 
 from __future__ import annotations
 
 import string
-from typing import Iterator
+from dojo.language import predicates as predicate_words
 
 from .spec_errors import JsonPath, did_you_mean
 
@@ -31,29 +31,6 @@ def _defined_names(task: dict) -> tuple[set[str], set[str], set[str]]:
             groups.add(entry["group"])
     regions = set(scene.get("regions", {}))
     return objects, groups, regions
-
-
-def _predicate_refs(pred: dict, path: JsonPath, in_quantifier: bool) -> Iterator[tuple[JsonPath, str, str, bool]]:
-    """(path, name, role, inside a quantifier) for every name a predicate uses; role is 'object' or 'group'."""
-    (op, arg), = pred.items()
-    here = path + (op,)
-    if op in ("all", "any", "ordered"):
-        for i, sub in enumerate(arg):
-            yield from _predicate_refs(sub, here + (i,), in_quantifier)
-    elif op == "not":
-        yield from _predicate_refs(arg, here, in_quantifier)
-    elif op in ("forall", "exists"):
-        yield here + ("group",), arg["group"], "group", in_quantifier
-        yield from _predicate_refs(arg["holds"], here + ("holds",), True)
-    elif op == "aligned":
-        for key in ("object", "target"):
-            yield here + (key,), arg[key], "object", in_quantifier
-    elif op == "upright":
-        yield here, arg, "object", in_quantifier
-    else:
-        for i, item in enumerate(arg):
-            if isinstance(item, str):
-                yield here + (i,), item, "object", in_quantifier
 
 
 def task_problems(task: dict) -> list[Problem]:
@@ -92,7 +69,8 @@ def task_problems(task: dict) -> list[Problem]:
     predicates: list[tuple[JsonPath, dict]] = [(("success",), task["success"])]
     predicates += [(("stages", i, "when"), s["when"]) for i, s in enumerate(task.get("stages", []))]
     for path, pred in predicates:
-        for ref_path, name, role, quantified in _predicate_refs(pred, path, False):
+        (op, arg), = pred.items()
+        for ref_path, name, role, quantified in predicate_words.references(op, arg, path, False):
             if role == "group":
                 if name not in groups:
                     problems.append((ref_path, f"unknown group '{name}'{did_you_mean(name, groups)}", False))

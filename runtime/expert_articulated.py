@@ -279,6 +279,17 @@ def close_joint(ctx: SkillContext, arm: str, obj: str, target: str | None = None
     return move_joint(ctx, arm, obj, target, None)
 
 
+def run_open(ctx: SkillContext, step: dict) -> SkillGen:
+    """The `open` skill word's runner."""
+    return open_joint(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"),
+                      float(step.get("amount", 1.0)))
+
+
+def run_close(ctx: SkillContext, step: dict) -> SkillGen:
+    """The `close` skill word's runner."""
+    return close_joint(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     """Rotation matrix of `angle` about the unit `axis` (Rodrigues)."""
     x, y, z = axis / max(float(np.linalg.norm(axis)), 1e-12)

@@ -23,6 +23,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from dojo.language import skills as skill_words
+
 from .expert_motion import (
     ARM_INDEX,
     CARRY,
@@ -848,39 +850,57 @@ def expand(plan: Any, steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def run_skill(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
-    """The generator of one expert step."""
-    skill, arm = step["skill"], step.get("arm", "auto")
-    obj, target = step.get("object"), step.get("target")
-    if skill == "place":
-        return place(ctx, arm, obj, target)
-    if skill == "stack":
-        return stack(ctx, arm, obj, target)
-    if skill == "grasp":
-        a = ctx.choose_arm(arm, ctx.scene.box(obj).center)
-        return grasp(ctx, a, obj)
-    if skill == "insert":
-        return insert(ctx, arm, obj, target)
-    if skill == "press":
-        return press(ctx, arm, obj)
-    if skill == "push_up":
-        return push_up(ctx, arm, obj, float(step.get("height", 0.1)))
-    if skill == "push":
-        return push(ctx, arm, obj, target)
-    if skill == "handover":
-        return handover(ctx, arm, obj, target)
-    if skill == "release":
-        return open_and_retreat(ctx, ctx.choose_arm(arm, ctx.scene.box(obj).center) if obj else 0)
-    if skill == "home":
-        return home(ctx)
-    if skill == "wait":
-        return iter([ctx.hold(int(step.get("steps", 10)))])
-    if skill in ("open", "close"):
-        from .expert_articulated import close_joint, open_joint  # it builds on this module: imported late
+    """The generator of one expert step, from its word's runner (`dojo.language.skills`)."""
+    word = skill_words.word(step["skill"])
+    if word is None:
+        raise ValueError(f"skill {step['skill']!r} is not a skill word (known: {', '.join(skill_words.names())})")
+    return word.runner()(ctx, step)
 
-        if skill == "open":
-            return open_joint(ctx, arm, obj, target, float(step.get("amount", 1.0)))
-        return close_joint(ctx, arm, obj, target)
-    raise ValueError(f"skill {skill!r} is not in the expert library yet (no built-in task uses it)")
+
+# Runners of the built-in skill words: a step's fields to the skill's arguments.
+def run_place(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return place(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
+def run_stack(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return stack(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
+def run_grasp(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return grasp(ctx, ctx.choose_arm(step.get("arm", "auto"), ctx.scene.box(step["object"]).center), step["object"])
+
+
+def run_insert(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return insert(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
+def run_press(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return press(ctx, step.get("arm", "auto"), step.get("object"))
+
+
+def run_push_up(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return push_up(ctx, step.get("arm", "auto"), step.get("object"), float(step.get("height", 0.1)))
+
+
+def run_push(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return push(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
+def run_handover(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return handover(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+
+
+def run_release(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    obj = step.get("object")
+    return open_and_retreat(ctx, ctx.choose_arm(step.get("arm", "auto"), ctx.scene.box(obj).center) if obj else 0)
+
+
+def run_home(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return home(ctx)
+
+
+def run_wait(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return iter([ctx.hold(int(step.get("steps", 10)))])
 
 
 def program(ctx: SkillContext, steps: list[dict[str, Any]]) -> SkillGen:

@@ -8,13 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 from dojo.backends.predicate_program import (
-    AllOf,
-    AnyOf,
-    JointBound,
-    Not,
-    Ordered,
     Press,
-    Pressed,
     ProgramError,
     ProgramLayout,
     compile_program,
@@ -23,6 +17,10 @@ from dojo.backends.predicate_program import (
     stack_params,
 )
 from dojo.backends.predicate_state import gather_state, mujoco_state
+from dojo.language.predicates.connectives import AllOf, AnyOf, Not
+from dojo.language.predicates.joint_bound import JointBound
+from dojo.language.predicates.ordered import Ordered
+from dojo.language.predicates.pressed import Pressed
 
 
 def layout(success, stages=(), names=None, weights=None, sequential=False, presses=(), n_order=0) -> ProgramLayout:
