@@ -40,8 +40,7 @@ their last output, and a reset replaces their memory rows with `init_memory` row
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -50,54 +49,13 @@ from dojo.language import predicates as words
 
 from . import predicates as P
 from .predicate_state import BODY, CONST, SITE, StateIndex, mujoco_state
+from .program_json import program_from_json
+from .program_types import CompiledProgram, Node, Press, ProgramError, ProgramLayout, ProgramOutput
 
 Array = Any
 ROBOT_ATOMS = ("left_arm", "right_arm")
 """Contact atoms for the robot: every geom of one arm (base to fingers). `robot` names both."""
 TABLE = "table"
-
-
-Node = Any
-"""A compiled predicate: a frozen dataclass defined by its word's module in `dojo.language.predicates`."""
-
-
-@dataclass(frozen=True)
-class Press:
-    """How a button's presses are detected: its joint's travel (joint >= 0), or robot contact (atoms)."""
-
-    joint: int
-    atoms: tuple[tuple[int, ...], tuple[int, ...]] | None
-
-
-@dataclass(frozen=True)
-class ProgramLayout:
-    success: Node
-    stages: tuple[Node, ...]
-    stage_names: tuple[str, ...]
-    weights: tuple[float, ...]
-    sequential: bool
-    presses: tuple[Press, ...]
-    n_order: int
-
-
-@dataclass
-class CompiledProgram:
-    layout: ProgramLayout
-    index: StateIndex
-    params: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-class ProgramOutput(NamedTuple):
-    """One evaluation, batched over N: success bool[N], score float[N] (0-100), stage_step int[N, S]
-    (first control step each stage was reached, -1 = not yet). A NamedTuple, hence a JAX pytree."""
-
-    success: Array
-    score: Array
-    stage_step: Array
-
-
-class ProgramError(ValueError):
-    """A name in the plan's program does not resolve against the plan and its model."""
 
 
 class _Compiler:
@@ -311,14 +269,21 @@ def _site_names(model: mujoco.MjModel) -> set[str]:
 
 
 def compile_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledProgram:
+    """The plan's program: as resolved by `dojo compile` (`plan.compiled_program`), else resolved now."""
+    if getattr(plan, "compiled_program", None):
+        return program_from_json(plan.compiled_program)
+    return resolve_program(plan, model)
+
+
+def resolve_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledProgram:
     """Resolve `plan.program` against the plan's objects, regions and compiled model. Raises ProgramError with
-    the offending name when something does not resolve."""
+    the offending name, and the spec path of the predicate (`success`, `stages.<i>.when`) as `.path`."""
     model = model or plan.model()
     data = plan.initial_data(model)
     comp = _Compiler(plan, model, data)
     program = plan.program
-    success = comp.node(program["success"])
-    stages = tuple(comp.node(s["when"]) for s in program.get("stages", []))
+    success = _located(comp, program["success"], ("success",))
+    stages = tuple(_located(comp, s["when"], ("stages", i, "when")) for i, s in enumerate(program.get("stages", [])))
     layout = ProgramLayout(
         success=success, stages=stages, stage_names=tuple(s["name"] for s in program.get("stages", [])),
         weights=tuple(float(s.get("weight", 1.0)) for s in program.get("stages", [])),
@@ -336,6 +301,14 @@ def compile_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledP
     params = {"frame_c": c, "frame_h": h, "const_pos": const, "init_center": init_center.reshape(f, 3),
               "press_rest": np.asarray(comp.press_rest, float), "press_far": np.asarray(comp.press_far, float)}
     return CompiledProgram(layout, index, params)
+
+
+def _located(comp: _Compiler, predicate: dict, path: tuple) -> Node:
+    try:
+        return comp.node(predicate)
+    except ProgramError as exc:
+        exc.path = path
+        raise
 
 
 def init_memory(xp: Any, layout: ProgramLayout, n: int) -> dict[str, Array]:

@@ -2,7 +2,8 @@
 
 A plan is what a backend loads and what a result names. It holds the compiled model (as MJCF text written by
 MjSpec, meshes inline, so a plan file alone rebuilds the model), the initial state, cameras, instruction, the
-success and score program as data, the horizon, and `hash`: a SHA-256 over every input (the spec files' bytes,
+success and score program as data and resolved against the scene (so a predicate naming something the scene does
+not have fails here, located in the spec, and backends resolve nothing), the horizon, and `hash`: a SHA-256 over every input (the spec files' bytes,
 the asset files they use, the compiler and MuJoCo versions, seed and setting). The hash is computed from the
 inputs *before* compiling, so an unchanged plan is found in the cache without being rebuilt, and a changed asset
 file changes exactly the hashes of the plans that could contain it.
@@ -21,17 +22,22 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from dojo.backends.predicate_program import ProgramError, resolve_program
+from dojo.backends.program_json import program_to_json
+
 from .horizon import task_horizon
 from .robot_emit import apply_home
 from .scene_emit import TABLE_ASSET, emit_scene
 from .scene_sample import STANDARD_LOOK, LayoutError, SceneInstance, sample_scene, setting_config
 from .scene_settle import settle
+from .spec_errors import SpecError
 from .spec_library import Spec, SpecLibrary
 from .spec_schema import collect_marked
 
 PLAN_FORMAT = "robodojo-plan/1"
-COMPILER_REVISION = 2  # bump when emission changes in a way the versions below do not capture
-# (2: scenes settle until at rest, and a layout whose objects slide or tip over while settling is redrawn)
+COMPILER_REVISION = 3  # bump when emission changes in a way the versions below do not capture
+# (2: scenes settle until at rest, and a layout whose objects slide or tip over while settling is redrawn;
+#  3: plans carry their resolved predicate program, `compiled_program`)
 SETTLE_REDRAWS = 6     # layouts tried per episode before the compiler gives up (scene_settle)
 
 
@@ -61,6 +67,8 @@ class Plan:
     scene: dict[str, Any] = field(default_factory=dict)
     settle: dict[str, Any] = field(default_factory=dict)
     """How the initial state was reached: `redraws` (layouts rejected first) and `seconds` simulated."""
+    compiled_program: dict[str, Any] = field(default_factory=dict)
+    """`program` resolved against this plan's model (`dojo.backends.program_json`)."""
     format: str = PLAN_FORMAT
 
     @cached_property
@@ -172,7 +180,7 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, b
                for name, r in task.data["scene"].get("regions", {}).items()}
     program = {"success": task.data["success"], "stages": task.data.get("stages", []),
                "stage_order": task.data.get("stage_order", "any")}
-    return Plan(
+    plan = Plan(
         hash=digest, task=task.id, dimension=task.data["dimension"], setting=setting, seed=seed,
         embodiment=robot.id, instruction=scene.instruction, horizon=task_horizon(task.data, demo_lengths),
         control_hz=emitted.robot.control_hz, n_substeps=emitted.robot.n_substeps,
@@ -181,6 +189,11 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, b
         model_xml=emitted.world.to_xml(), scene=scene.to_json(),
         settle={"redraws": redraw, "seconds": round(settled.seconds, 3)},
     )
+    try:
+        plan.compiled_program = program_to_json(resolve_program(plan))
+    except ProgramError as exc:
+        raise SpecError([task.problem(exc.path or ("success",), str(exc))]) from None
+    return plan
 
 
 def _floats(array: np.ndarray) -> list[float]:

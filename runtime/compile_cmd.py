@@ -23,7 +23,7 @@ def compile_task(cfg: DictConfig) -> int:
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, Path(cfg.out), jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
-                          demo_lengths=demos)
+                          demo_lengths=demos, tasks=list(cfg.tasks) if cfg.tasks is not None else None)
     seconds = time.perf_counter() - started
     per_plan = seconds / stats.compiled if stats.compiled else 0.0
     print(f"{suite.id}: {stats.plans} plans ({stats.compiled} compiled in {seconds:.1f} s, "
@@ -32,7 +32,8 @@ def compile_task(cfg: DictConfig) -> int:
 
 
 def show_task(cfg: DictConfig) -> int:
-    """Render a plan, a task's scene or a robot from every camera (and an overview) to PNG files."""
+    """Render a plan, a task's scene or a robot from every camera (and an overview) to PNG files; for a task, also
+    its task card (Markdown) linking the images."""
     ensure_headless_gl()
     import mujoco
 
@@ -40,6 +41,7 @@ def show_task(cfg: DictConfig) -> int:
     from dojo.compiler.plan import Plan, compile_plan
     from dojo.compiler.robot_emit import apply_home, build_robot_world
     from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.task_card import task_card
 
     out = Path(cfg.out)
     if cfg.plan is not None:
@@ -67,6 +69,10 @@ def show_task(cfg: DictConfig) -> int:
     for name, image in images.items():
         save_png(image, out / f"{label}_{name}.png")
         print(out / f"{label}_{name}.png")
+    if cfg.task is not None:
+        card = out / f"{label}.md"
+        card.write_text(task_card(task, plan.instruction, {n: f"{label}_{n}.png" for n in images}))
+        print(card)
     if cfg.usd:
         from dojo.compiler.usd_io import export_model_usd
 

@@ -85,6 +85,11 @@ def evaluator(node_type: type) -> Callable[[Any, Any], Array] | None:
     return _EVALUATORS.get(node_type)
 
 
+def node_types() -> list[type]:
+    """Every node type the registered words produce (plans store compiled programs by these names)."""
+    return list(_EVALUATORS)
+
+
 def schema_properties() -> dict[str, dict[str, Any]]:
     """`$defs/predicate/properties` of the task schema: every word's argument schema, in registration order."""
     return {name: w.schema for name, w in _WORDS.items()}

@@ -94,7 +94,8 @@ def test_a_new_word_gets_the_reference_checks_from_its_schema(library, above):
 
 
 def test_a_new_word_compiles_and_evaluates_on_a_real_plan(probe_plan, set_free_pose, above):
-    plan = dataclasses.replace(probe_plan, program={"success": {"above": ["cube_0", "bin", 0.1]}, "stages": []})
+    plan = dataclasses.replace(probe_plan, program={"success": {"above": ["cube_0", "bin", 0.1]}, "stages": []},
+                               compiled_program={})
     program = compile_program(plan, probe_plan.model())
     qpos = np.asarray(probe_plan.init_qpos)
     assert evaluate(plan, program, state_after(probe_plan, qpos)).success.tolist() == [False]

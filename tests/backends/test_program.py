@@ -166,7 +166,7 @@ def test_touched_and_joint_predicates_compile_against_the_model(probe_plan):
     program = {"success": {"all": [{"touched": ["cube_0", "table"]}, {"joint_at_most": ["button/press", 0.002]},
                                    {"not": {"touched": ["cube_0", "robot"]}}, {"upright": "cube_1"}]},
                "stages": [], "stage_order": "any"}
-    plan = dataclasses.replace(probe_plan, program=program)
+    plan = dataclasses.replace(probe_plan, program=program, compiled_program={})
     out = evaluate(plan, compile_program(plan, probe_plan.model()), probe_plan.initial_data())
     assert out.success.tolist() == [True]
 
@@ -178,7 +178,7 @@ def test_touched_and_joint_predicates_compile_against_the_model(probe_plan):
     ({"joint_at_least": ["button/twist", 0.1]}, "no such joint"),
 ])
 def test_unresolved_names_are_reported(probe_plan, success, message):
-    plan = dataclasses.replace(probe_plan, program={"success": success, "stages": []})
+    plan = dataclasses.replace(probe_plan, program={"success": success, "stages": []}, compiled_program={})
     with pytest.raises(ProgramError, match=message):
         compile_program(plan, probe_plan.model())
 
@@ -232,7 +232,7 @@ def test_batched_state_reads_a_stacked_data_object(probe_plan):
 
     from dojo.backends.predicate_state import batched_state
 
-    plan = dataclasses.replace(probe_plan, program={"success": {"all": [
+    plan = dataclasses.replace(probe_plan, compiled_program={}, program={"success": {"all": [
         {"touched": ["cube_0", "table"]}, {"inside": ["cube_1", "bin"]}, {"on": ["cube_1", "cubes"]}]}, "stages": []})
     program = compile_program(plan, probe_plan.model())
     data = state_after(probe_plan, np.asarray(probe_plan.init_qpos), settle_steps=5)
