@@ -16,6 +16,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from .registry import Registry
+
 Runner = Callable[[Any, dict[str, Any]], Iterator[Any]]
 _EXPERT = "dojo.runtime.expert_skills"
 _ARTICULATED = "dojo.runtime.expert_articulated"
@@ -37,30 +39,22 @@ class SkillWord:
         return getattr(importlib.import_module(module), attr)
 
 
-_SKILLS: dict[str, SkillWord] = {}
-_version = 0
+_SKILLS: Registry[SkillWord] = Registry("skill")
 
 
 def register(skill: SkillWord) -> SkillWord:
     """Add a skill word (accepted by the task schema from now on)."""
-    global _version
-    if skill.name in _SKILLS:
-        raise ValueError(f"skill {skill.name!r} is already defined")
-    _SKILLS[skill.name] = skill
-    _version += 1
-    return skill
+    return _SKILLS.add(skill.name, skill)
 
 
 def unregister(name: str) -> None:
     """Remove a skill word (tests that add one take it out again)."""
-    global _version
-    del _SKILLS[name]
-    _version += 1
+    _SKILLS.remove(name)
 
 
 def version() -> int:
     """Changes whenever the set of skills does (validator caches key on it)."""
-    return _version
+    return _SKILLS.version
 
 
 def word(name: str) -> SkillWord | None:
@@ -69,12 +63,12 @@ def word(name: str) -> SkillWord | None:
 
 def names() -> list[str]:
     """The skill names in registration order (the schema's enum)."""
-    return list(_SKILLS)
+    return list(_SKILLS.entries())
 
 
 def schema_property() -> dict[str, Any]:
     """The task schema's `$defs/skill/properties/skill`: the enum of skill names with what each does."""
-    lines = "; ".join(f"`{s.name}`: {s.description}" for s in _SKILLS.values())
+    lines = "; ".join(f"`{s.name}`: {s.description}" for s in _SKILLS.entries().values())
     return {"description": f"The skill. {lines}", "enum": names()}
 
 

@@ -14,7 +14,8 @@ A `PredicateWord` carries everything about one word:
   words that compile into other words' nodes, such as `stacked`). `ev` offers `xp`, `frame`, `touching`,
   `state`, `params`, `memory`, `press_count`, `step`, `record_first` and `eval` for children.
 
-Registering a word that exists already is an error, so a module cannot silently change a built-in word.
+Registering a word that exists already is an error (`dojo.language.registry`), so a module cannot silently change
+a built-in word.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
+
+from ..registry import Registry
 
 Array = Any
 OBJREF = "#/$defs/objref"
@@ -40,37 +43,30 @@ class PredicateWord:
     evaluate: Callable[[Any, Any], Array] | None = None
 
 
-_WORDS: dict[str, PredicateWord] = {}
+_WORDS: Registry[PredicateWord] = Registry("predicate")
 _EVALUATORS: dict[type, Callable[[Any, Any], Array]] = {}
-_version = 0
 
 
 def register(word: PredicateWord) -> PredicateWord:
     """Add a word to the language (its schema is accepted by the validator from now on)."""
-    global _version
-    if word.name in _WORDS:
-        raise ValueError(f"predicate {word.name!r} is already defined")
     if (word.node is None) != (word.evaluate is None):
         raise ValueError(f"predicate {word.name!r}: give both a node type and its evaluate, or neither")
-    _WORDS[word.name] = word
+    _WORDS.add(word.name, word)
     if word.node is not None:
         _EVALUATORS[word.node] = word.evaluate
-    _version += 1
     return word
 
 
 def unregister(name: str) -> None:
     """Remove a word (tests that add a word take it out again)."""
-    global _version
-    word = _WORDS.pop(name)
+    word = _WORDS.remove(name)
     if word.node is not None:
         _EVALUATORS.pop(word.node, None)
-    _version += 1
 
 
 def version() -> int:
     """Changes whenever the vocabulary does: caches of validators built from it key on this."""
-    return _version
+    return _WORDS.version
 
 
 def word(name: str) -> PredicateWord | None:
@@ -78,7 +74,7 @@ def word(name: str) -> PredicateWord | None:
 
 
 def names() -> list[str]:
-    return sorted(_WORDS)
+    return sorted(_WORDS.entries())
 
 
 def evaluator(node_type: type) -> Callable[[Any, Any], Array] | None:
@@ -92,7 +88,7 @@ def node_types() -> list[type]:
 
 def schema_properties() -> dict[str, dict[str, Any]]:
     """`$defs/predicate/properties` of the task schema: every word's argument schema, in registration order."""
-    return {name: w.schema for name, w in _WORDS.items()}
+    return {name: w.schema for name, w in _WORDS.entries().items()}
 
 
 def references(name: str, arg: Any, path: tuple, quantified: bool) -> Iterator[tuple[tuple, str, str, bool]]:
