@@ -18,8 +18,10 @@ fi
 
 "$PY" -m pip install --quiet --upgrade pip
 "$PY" -m pip install --quiet -e ".[dev]"
-# openpi-client pins numpy<2 although its websocket client runs on numpy 2: install it without its pins so that
-# the protocol tests can talk to the real package.
+# openpi-client pins numpy<2 although its websocket client runs on numpy 2: install it without its pins, and last,
+# so that the protocol tests can talk to the real package. pip checks what is already installed against the
+# requirements of every later install (printing a red "ERROR: ... requires numpy<2.0.0" for it), and skips that
+# check with --no-deps: so nothing may be installed after it (its own dependencies, dm-tree included, are in
+# the dev extra). `pip check` names this one pin; it is known and harmless.
 "$PY" -m pip install --quiet --no-deps "openpi-client>=0.1.2"
-"$PY" -m pip install --quiet "dm-tree>=0.1.8"
 echo "robodojo installed: $("$PY" -c 'import importlib.metadata as m; print(m.version("robodojo"))'); try: dojo --help"

@@ -14,12 +14,14 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+from collections.abc import Collection, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 from .plan import compile_plan, compiler_id, plan_hash
+from .spec_errors import did_you_mean
 from .spec_library import Spec, SpecLibrary
 
 SEED_STRIDE = 10_000
@@ -39,12 +41,21 @@ class Episode:
 
 
 def suite_episodes(library: SpecLibrary, suite: Spec, *, seeds: list[int] | None = None,
-                   episodes: int | None = None) -> list[Episode]:
-    """The suite's episodes, in a stable order (task, seed, setting, index)."""
+                   episodes: int | None = None, tasks: Collection[str] | None = None) -> list[Episode]:
+    """The suite's episodes, in a stable order (task, seed, setting, index); only those of `tasks` when given
+    (each must be one of the suite's tasks)."""
     seeds = list(seeds if seeds is not None else suite.data.get("seeds", [0]))
     standard_share = suite.data.get("generalization_split", {}).get("standard", 0.5)
+    entries = library.suite_tasks(suite)
+    if tasks is not None:
+        ids = [task.id for task, _ in entries]
+        for wanted in tasks:
+            if wanted not in ids:
+                raise KeyError(f"suite {suite.id} has no task '{wanted}'{did_you_mean(str(wanted), ids)}; "
+                               f"its tasks: {', '.join(ids)}")
+        entries = [(task, entry) for task, entry in entries if task.id in set(tasks)]
     out = []
-    for task, entry in library.suite_tasks(suite):
+    for task, entry in entries:
         count = int(episodes or entry.get("episodes") or suite.data.get("episodes", 50))
         dimension = task.data["dimension"]
         if dimension == "generalization":
@@ -63,16 +74,51 @@ def plan_path(out: Path, episode: Episode, digest: str) -> Path:
     return out / episode.task / f"{episode.setting}-{episode.scene_seed}-{digest[:16]}.json"
 
 
-# What forked workers compile from: set before the pool starts, inherited by fork (specs are not re-read).
-_WORKER_STATE: tuple[SpecLibrary, dict[str, Spec], dict[str, list[int]]] | None = None
+PlanJob = tuple[str, str, str, int, str]
+"""One plan to compile: (task id, task's package, setting, scene seed, plan file)."""
+
+# What a worker process compiles from, given once per worker by the pool's initializer.
+_WORKER_STATE: tuple[SpecLibrary, dict[str, list[int]]] | None = None
 
 
-def _compile_one(args: tuple[str, str, int, str]) -> str:
-    task_id, setting, seed, path = args
+def _init_worker(library: SpecLibrary, demos: dict[str, list[int]]) -> None:
+    global _WORKER_STATE
+    _WORKER_STATE = (library, demos)
+
+
+def _compile_one(job: PlanJob) -> str:
+    task_id, package, setting, seed, path = job
     assert _WORKER_STATE is not None
-    library, tasks, demos = _WORKER_STATE
-    compile_plan(library, tasks[task_id], setting, seed, demo_lengths=demos.get(task_id)).save(Path(path))
+    library, demos = _WORKER_STATE
+    task = library.get("task", task_id, package=package)
+    compile_plan(library, task, setting, seed, demo_lengths=demos.get(task_id)).save(Path(path))
     return path
+
+
+def compile_plan_files(library: SpecLibrary, todo: Sequence[PlanJob], *, jobs: int = 1,
+                       demo_lengths: dict[str, list[int]] | None = None,
+                       progress: Callable[[int, int], None] | None = None) -> None:
+    """Compile and save each job's plan, in `jobs` worker processes when there is more than one plan.
+
+    Workers are spawned, never forked: the calling process may already run threads (JAX's runtime once an mjx
+    backend or benchmark started, MuJoCo's thread pools, a live progress display), and a forked copy of a
+    multithreaded process can deadlock on a lock some thread held. The library travels to each worker once."""
+    demos = demo_lengths or {}
+    done = 0
+    if jobs > 1 and len(todo) > 1:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_init_worker, initargs=(library, demos)) as pool:
+            for _ in pool.map(_compile_one, todo, chunksize=max(1, len(todo) // (4 * jobs))):
+                done += 1
+                if progress:
+                    progress(done, len(todo))
+        return
+    _init_worker(library, demos)
+    for job in todo:
+        _compile_one(job)
+        done += 1
+        if progress:
+            progress(done, len(todo))
 
 
 @dataclass
@@ -85,37 +131,24 @@ class CompileStats:
 
 def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1, seeds: list[int] | None = None,
                   episodes: int | None = None, demo_lengths: dict[str, list[int]] | None = None,
+                  tasks: Collection[str] | None = None,
                   progress: Callable[[int, int], None] | None = None) -> CompileStats:
     """Compile every episode's plan into `out` (reusing existing ones) and write `out/index.json`.
-    `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons."""
-    global _WORKER_STATE
+    `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons; `tasks` keeps only
+    those of the suite's tasks."""
     out.mkdir(parents=True, exist_ok=True)
     entries, todo, queued = [], [], set()
     demos = demo_lengths or {}
-    tasks = {task.id: task for task, _ in library.suite_tasks(suite)}
-    for episode in suite_episodes(library, suite, seeds=seeds, episodes=episodes):
-        digest = plan_hash(library, tasks[episode.task], episode.setting, episode.scene_seed,
-                           demos.get(episode.task))
+    specs = {task.id: task for task, _ in library.suite_tasks(suite)}
+    for episode in suite_episodes(library, suite, seeds=seeds, episodes=episodes, tasks=tasks):
+        task = specs[episode.task]
+        digest = plan_hash(library, task, episode.setting, episode.scene_seed, demos.get(episode.task))
         path = plan_path(out, episode, digest)
         entries.append({**asdict(episode), "hash": digest, "path": str(path.relative_to(out))})
         if not path.exists() and path not in queued:
             queued.add(path)
-            todo.append((episode.task, episode.setting, episode.scene_seed, str(path)))
-    _WORKER_STATE = (library, tasks, demos)
-    done = 0
-    if jobs > 1 and len(todo) > 1:
-        context = multiprocessing.get_context("fork")
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-            for _ in pool.map(_compile_one, todo, chunksize=max(1, len(todo) // (4 * jobs))):
-                done += 1
-                if progress:
-                    progress(done, len(todo))
-    else:
-        for item in todo:
-            _compile_one(item)
-            done += 1
-            if progress:
-                progress(done, len(todo))
+            todo.append((task.id, task.package, episode.setting, episode.scene_seed, str(path)))
+    compile_plan_files(library, todo, jobs=jobs, demo_lengths=demos, progress=progress)
     index = out / "index.json"
     tmp = index.with_suffix(".tmp")
     tmp.write_text(json.dumps({"format": INDEX_FORMAT, "suite": suite.id, "compiler": compiler_id(),

@@ -22,10 +22,8 @@ re-records only those that were in flight; a larger `n` extends the collection.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -99,26 +97,12 @@ def episode_path(episodes_dir: Path, k: int) -> Path:
     return episodes_dir / f"episode_{k:06d}.hdf5"
 
 
-# What forked plan compilers read: set before the pool starts, inherited by fork (specs are not re-read).
-_COMPILE_STATE: tuple[Any, Any, str] | None = None
-
-
-def _compile_one(args: tuple[int, str]) -> None:
-    from dojo.compiler.plan import compile_plan
-
-    assert _COMPILE_STATE is not None
-    library, task, setting = _COMPILE_STATE
-    seed, path = args
-    compile_plan(library, task, setting, seed).save(Path(path))
-
-
 def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: Path, jobs: int
                   ) -> list[tuple[Path, str]]:
     """(plan file, hash) per scene seed, compiling those not yet in `out` (named as the suite compiler names
     them, so a plan is found again by its hash)."""
-    global _COMPILE_STATE
     from dojo.compiler.plan import plan_hash
-    from dojo.compiler.suite_compile import Episode, plan_path
+    from dojo.compiler.suite_compile import Episode, compile_plan_files, plan_path
 
     dimension = task.data["dimension"]
     plans, todo = [], []
@@ -127,14 +111,8 @@ def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: 
         path = plan_path(out, Episode(task.id, dimension, setting, seed, 0, 0), digest)
         plans.append((path, digest))
         if not path.exists():
-            todo.append((seed, str(path)))
-    _COMPILE_STATE = (library, task, setting)
-    if jobs > 1 and len(todo) > 1:
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
-            list(pool.map(_compile_one, todo))
-    else:
-        for item in todo:
-            _compile_one(item)
+            todo.append((task.id, task.package, setting, seed, str(path)))
+    compile_plan_files(library, todo, jobs=jobs)
     return plans
 
 

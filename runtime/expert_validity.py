@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 from dojo.backends.mujoco.backend import MujocoBackend
-from dojo.compiler.plan import Plan, compile_plan, plan_hash
+from dojo.compiler.plan import Plan, plan_hash
 from dojo.compiler.spec_library import SpecLibrary
+from dojo.compiler.suite_compile import compile_plan_files
 
 from .run_cmd import DEFAULT_PLAN_CACHE
 
@@ -52,20 +53,9 @@ def episode_list(library: SpecLibrary, task: str, seeds: int) -> list[tuple[str,
     return [("standard", i) for i in range(standard)] + [("random", i) for i in range(seeds - standard)]
 
 
-_LIBRARY: SpecLibrary | None = None
-
-
-def _compile(args: tuple[str, str, int, str]) -> str:
-    task, setting, seed, path = args
-    assert _LIBRARY is not None
-    compile_plan(_LIBRARY, _LIBRARY.get("task", task), setting, seed).save(Path(path))
-    return path
-
-
 def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Path, jobs: int = 1
                ) -> dict[str, list[Path]]:
     """Plan files of every task's validity episodes, compiling the missing ones (in `jobs` processes)."""
-    global _LIBRARY
     out: dict[str, list[Path]] = {}
     todo = []
     for task in tasks:
@@ -75,14 +65,8 @@ def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Pa
             path = cache / task / f"{setting}-{seed}-{digest[:16]}.json"
             out.setdefault(task, []).append(path)
             if not path.exists():
-                todo.append((task, setting, seed, str(path)))
-    _LIBRARY = library
-    if jobs > 1 and len(todo) > 1:
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
-            list(pool.map(_compile, todo))
-    else:
-        for item in todo:
-            _compile(item)
+                todo.append((spec.id, spec.package, setting, seed, str(path)))
+    compile_plan_files(library, todo, jobs=jobs)
     return out
 
 
@@ -158,7 +142,7 @@ def run_episodes(name: str, paths: Sequence[Path], jobs: int) -> list[Outcome]:
     experts plan in Python, one core each, so a many-core machine runs the whole table in minutes. Each
     episode runs alone in its backend (CPU episodes do not depend on their batch neighbours), and the random
     policy is seeded with the episode's scene seed, so the figures do not depend on `jobs`."""
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:  # never fork threads
         return list(pool.map(_run_episode, [(name, str(p)) for p in paths]))
 
 

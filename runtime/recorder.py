@@ -71,6 +71,10 @@ class Mp4Writer:
     def __init__(self, path: Path, fps: float, *, crf: int = 23, gop: int | None = None) -> None:
         import imageio.v2 as imageio
 
+        # imageio-ffmpeg starts ffmpeg with a `preexec_fn` (to keep Ctrl-C away from it), which runs Python in the
+        # forked child before exec: unsafe in a multithreaded process (JAX, MuJoCo's pools, the live display).
+        # Without it ffmpeg is spawned the safe way; a Ctrl-C then also stops ffmpeg, and `abort` copes.
+        os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
         self.path = path
         self.tmp = path.with_name(path.stem + ".tmp.mp4")
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -91,7 +95,10 @@ class Mp4Writer:
         return self.path
 
     def abort(self) -> None:
-        self._writer.close()
+        try:
+            self._writer.close()
+        except OSError:  # ffmpeg already stopped (a Ctrl-C reaches it too): the file is dropped anyway
+            pass
         self.tmp.unlink(missing_ok=True)
 
 
