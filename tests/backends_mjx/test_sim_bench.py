@@ -7,6 +7,8 @@ persistent compilation cache both bench modes reuse that test's compiled program
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 from conftest import CACHE_DIR, toy_plan
@@ -24,11 +26,12 @@ def test_bench_sim_prints_one_json_object_with_both_modes(tmp_path):
     out = json.loads(json.dumps(bench_sim(cfg)))
     assert out["impl"] == "jax" and out["num_envs"] == 2 and out["tasks"] == ["toy"]
     for mode in ("heterogeneous", "homogeneous"):
-        assert out[mode]["env_steps_per_s"] > 0
-        assert out[mode]["env_steps_per_s"] == pytest.approx(10 * out[mode]["interactions_per_s"])
+        assert out[mode]["physics_steps_per_s"] > 0
+        assert out[mode]["physics_steps_per_s"] == pytest.approx(10 * out[mode]["interactions_per_s"])
         assert out[mode]["compilations"] == 1
     assert out["ratios"]["heterogeneous_over_homogeneous"] == pytest.approx(
-        out["heterogeneous"]["env_steps_per_s"] / out["homogeneous"]["env_steps_per_s"])
+        out["heterogeneous"]["interactions_per_s"] / out["homogeneous"]["interactions_per_s"])
+    assert set(out["counts"]) == {"interactions", "physics_steps"}
     assert {"device", "jax", "mujoco", "mujoco_mjx", "peak_device_bytes_per_env"} <= set(out)
 
 
@@ -41,19 +44,36 @@ def test_split_batch_is_proportional_and_complete():
         split_batch(buckets, 1)
 
 
-def test_dojo_bench_sim_cpu_mode_prints_exactly_one_json_line(tmp_path):
-    import subprocess
-    import sys
+def _bench(*args: str, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "bench", "sim", "tasks=[stack_blocks]",
+                           "episodes=1", *args], cwd=cwd, capture_output=True, text=True, timeout=600)
 
-    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "bench", "sim", "modes=[cpu]",
-                             "tasks=[stack_blocks]", "episodes=1", "cpu_envs=2", "cpu_steps=3"],
-                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
+
+def test_dojo_bench_sim_backend_mujoco_measures_the_cpu_backend_it_names(tmp_path):
+    """No GPU needed, no JAX imported (no 'tpu' message), one JSON line describing what was measured."""
+    result = _bench("backend=mujoco", "num_envs=2", "steps=3", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    assert "tpu" not in result.stderr.lower() and "ERROR" not in result.stderr
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1, result.stdout
     out = json.loads(lines[0])
-    assert out["tasks"] == ["stack_blocks"] and set(out) >= {"cpu", "device", "mujoco", "jax"}
-    cpu = out["cpu"]
-    assert cpu["num_envs"] == 2 and cpu["interactions_per_s"] > 0 and cpu["interactions_per_cpu_s"] > 0
-    assert cpu["env_steps_per_s"] == pytest.approx(20 * cpu["interactions_per_s"])
-    assert 0 < cpu["reset_ms_mean"] <= cpu["reset_ms_max"]
+    assert out["backend"] == "mujoco" and out["num_envs"] == 2 and out["steps"] == 3
+    assert out["tasks"] == ["stack_blocks"] and "jax" not in out
+    assert out["interactions_per_s"] > 0 and out["interactions_per_cpu_s"] > 0
+    assert out["physics_steps_per_s"] == pytest.approx(out["substeps_per_interaction"] * out["interactions_per_s"])
+    assert out["substeps_per_interaction"] == 20  # 500 Hz physics under 25 Hz control
+    assert 0 < out["reset_ms_mean"] <= out["reset_ms_max"]
+    assert not list(tmp_path.iterdir())  # no log file or output folder where the command was run
+
+
+def test_dojo_bench_sim_cpu_mode_of_mjx_reports_the_cpu_run(tmp_path):
+    result = _bench("modes=[cpu]", "cpu_envs=2", "cpu_steps=3", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    out = json.loads(result.stdout)
+    assert out["backend"] == "mujoco" and out["num_envs"] == 2 and out["steps"] == 3  # not mjx's 64 environments
+
+
+def test_dojo_bench_sim_refuses_mjx_modes_on_the_mujoco_backend(tmp_path):
+    result = _bench("backend=mujoco", "modes=[heterogeneous]", cwd=tmp_path)
+    assert result.returncode == 1
+    assert "heterogeneous and homogeneous are modes of backend=mjx" in result.stderr
