@@ -90,6 +90,9 @@ class SpecLibrary:
         self._index: dict[tuple[str, str, str], Spec] = {}
         self.problems: list[SpecProblem] = []
         self.kind_of_file: dict[Path, str] = {}
+        # (package, file stem) -> (kind as far as known, display path) of files that did not load: a reference to
+        # one of them is reported as such, not as an unknown id that hides the file's own problem.
+        self._invalid: dict[tuple[str, str], tuple[str, str]] = {}
 
     @classmethod
     def load(cls, packages: Iterable[Path] = (), *, builtin: bool = True, strict: bool = True) -> "SpecLibrary":
@@ -126,6 +129,7 @@ class SpecLibrary:
             self.kind_of_file[file] = kind
             self.problems.extend(problems)
             if spec is None:
+                self._invalid.setdefault((package, file.stem), (kind, display_path(file)))
                 continue
             key = (package, spec.kind, spec.id)
             if key in self._index:
@@ -190,6 +194,10 @@ class SpecLibrary:
                                                "suites evaluate; demonstrate it with `dojo collect` instead")
         if isinstance(use.value, str):
             if not found:
+                broken = self._invalid_file(owner.package, use.kind, use.value)
+                if broken:
+                    return owner.problem(use.path, f"{use.kind} '{use.value}' did not load: {broken} is invalid "
+                                                   "(its problems are reported at that file)")
                 hint = did_you_mean(use.value, [s.id for s in scope])
                 return owner.problem(use.path, f"unknown {use.kind} '{use.value}'{hint}")
             return None
@@ -206,6 +214,14 @@ class SpecLibrary:
             names = ", ".join(s.id for s in found[:5])
             return owner.problem(use.path, f"query {_query_text(use.value)} is ambiguous: it matches {len(found)} "
                                            f"{use.kind}s ({names}); name one by id")
+        return None
+
+    def _invalid_file(self, package: str, kind: str, spec_id: str) -> str | None:
+        """The file that would define `spec_id` in the owner's scope but did not load, if there is one."""
+        for pkg in dict.fromkeys((package, "builtin")):
+            found = self._invalid.get((pkg, spec_id))
+            if found and found[0] in (kind, "unreadable", "unknown"):
+                return found[1]
         return None
 
     def _check_references(self) -> None:

@@ -91,6 +91,11 @@ def _report(argv: list[str]) -> int:
     return report_main(argv)
 
 
+def _doctor(argv: list[str]) -> int:
+    from .doctor import doctor_main
+    return doctor_main(argv)
+
+
 def _list(argv: list[str]) -> int:
     from .list_cmd import list_main
     return list_main(argv)
@@ -101,9 +106,9 @@ COMMANDS: dict[str, Command] = {
                         "dojo validate specs/ my_pack/ --format json", _validate),
     "list": Command("List the installed tasks, assets, robots or suites.", "dojo list tasks", _list),
     "compile": Command("Compile a suite's specs into content-addressed plans.",
-                       "dojo compile suite=robodojo_sim_mini out=plans", _hydra("compile", "compile_task")),
+                       "dojo compile suite=robodojo_sim_mini -j 2", _hydra("compile", "compile_task")),
     "show": Command("Render a plan or a task's scene from every camera to PNG (and USD).",
-                    "dojo show task=stack_blocks seed=3 setting=random out=show/", _hydra("show", "show_task")),
+                    "dojo show task=stack_blocks seed=3 setting=random", _hydra("show", "show_task")),
     "run": Command("Evaluate a policy on a suite and score it.",
                    "dojo run suite=robodojo_sim_mini policy.url=ws://127.0.0.1:19000", _hydra("run", "run_task")),
     "collect": Command("Record demonstrations of a task as HDF5 episodes and a LeRobot v3.0 dataset.",
@@ -111,9 +116,11 @@ COMMANDS: dict[str, Command] = {
     "bench": Command("Measure simulation, rendering or policy-link throughput (one JSON line).",
                      "dojo bench sim modes=[cpu] cpu_envs=32", _bench),
     "report": Command("Write the JSON and HTML report (leaderboard) of one or more runs.",
-                      "dojo report outputs/2026-11-23/10-00-00 out=report/", _report),
+                      "dojo report outputs/robodojo_sim_mini/zero outputs/robodojo_sim_mini/random", _report),
     "policy": Command("Serve, check or create a policy (XPolicyLab).",
                       "dojo policy serve policy=zero port=19000", _policy),
+    "doctor": Command("Print versions, devices and where results and caches are (paste it into bug reports).",
+                      "dojo doctor", _doctor),
 }
 
 

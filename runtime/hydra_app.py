@@ -113,8 +113,8 @@ def check_overrides(config_name: str, overrides: list[str]) -> str | None:
                     continue
                 known = _flat_keys(base)
                 if key not in known:
-                    return (f"unknown key '{key}'{did_you_mean(key, known)}; "
-                            f"to add a new key write +{key}=VALUE")
+                    hint = did_you_mean(key, known)  # a near miss is a typo: adding it as a new key would not help
+                    return f"unknown key '{key}'" + (hint or f"; to add a new key write +{key}=VALUE")
             compose(config_name=config_name, overrides=single)
     except (HydraException, ValueError) as err:
         return str(err).splitlines()[0]
@@ -123,15 +123,24 @@ def check_overrides(config_name: str, overrides: list[str]) -> str | None:
     return None
 
 
+_FLAGS_WITH_VALUES = {"--cfg", "-c", "--package", "-p", "--config-name", "-cn", "--config-dir", "-cd", "--info",
+                      "--experimental-rerun"}
+
+
+def overrides_of(argv: list[str]) -> list[str]:
+    """The `key=value` overrides of a command line, without Hydra's flags and their values (`--cfg job`)."""
+    values_of_flags = {i + 1 for i, a in enumerate(argv[:-1]) if a in _FLAGS_WITH_VALUES}
+    return [a for i, a in enumerate(argv) if not a.startswith("-") and i not in values_of_flags]
+
+
 def run_hydra_command(name: str, config_name: str, argv: list[str], task: Callable[[DictConfig], int]) -> int:
     """Run `task` under Hydra with `argv` (overrides and Hydra flags) and return its exit code."""
     import hydra
 
-    overrides = [a for a in argv if not a.startswith("-")]
-    flags_with_values = {"--cfg", "-c", "--package", "-p", "--config-name", "-cn", "--config-dir", "-cd",
-                         "--info", "--experimental-rerun"}
-    values_of_flags = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a in flags_with_values}
-    overrides = [o for o in overrides if o not in values_of_flags]
+    from .run_dir import register_resolver
+
+    register_resolver()
+    overrides = overrides_of(argv)
     _register_spec_groups(_packs_from(overrides))
     if not {"--help", "-h", "--hydra-help"} & set(argv):
         problem = check_overrides(config_name, overrides)

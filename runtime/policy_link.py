@@ -67,6 +67,17 @@ class RemotePolicy:
         self.client.close()
 
 
+PRIVILEGED_NOTE = "privileged reference: reads the simulator state, not a leaderboard entry"
+"""How a run's table and a report mark a policy whose metadata says `extra.privileged` (the scripted `oracle`):
+its 100% shows that the tasks are solvable, not what a policy that sees only cameras and joints can do."""
+
+
+def is_privileged(metadata: PolicyMetadata | dict[str, Any]) -> bool:
+    """Does a policy (its metadata, or the metadata dict a result row stores) read the simulator state?"""
+    extra = metadata.extra if isinstance(metadata, PolicyMetadata) else (metadata.get("extra") or {})
+    return bool(extra.get("privileged"))
+
+
 RUNTIME_POLICIES = {"oracle": "dojo.runtime.oracle:OraclePolicy"}
 """Reference policies that need the simulator (so they live here, not in the MuJoCo-free xpolicylab)."""
 

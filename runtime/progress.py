@@ -126,7 +126,8 @@ class Progress:
             "elapsed_s": round(elapsed, 3),
             "eta_s": None if eta is None else round(eta, 1),
             "interactions": self._interactions,
-            "interactions_per_s": round(self._interactions / elapsed, 2) if elapsed > 0 else None,
+            "interactions_per_s": round(self._interactions / elapsed, 2) if elapsed > 0 and self._interactions
+            else None,  # a resumed run with nothing left to step has no rate (not a rate of 0)
             "success_by_dimension": {
                 d: {"successes": s, "episodes": n, "success_pct": round(100.0 * s / n, 2)}
                 for d, (s, n) in ((d, self._dim_counts[d]) for d in DIMENSIONS + TRAINING_DIMENSIONS
@@ -158,9 +159,14 @@ class Progress:
         if self._live is None:
             return
         snap = self.snapshot()
-        eta = "ETA --" if snap["eta_s"] is None else f"ETA {_duration(snap['eta_s'])}"
-        ips = "--" if snap["interactions_per_s"] is None else f"{snap['interactions_per_s']:.1f}"
-        self._bar.update(self._bar_task, completed=self.done, rate=f"{eta}  {ips} interactions/s")
+        if not self._interactions and self._resumed:  # nothing stepped yet (or nothing left): no rate to show
+            left = self.total - self.done
+            rate = f"resumed: {self._resumed} already recorded" + (f", {left} to run" if left else ", nothing to run")
+        else:
+            eta = "ETA --" if snap["eta_s"] is None else f"ETA {_duration(snap['eta_s'])}"
+            ips = "--" if not self._interactions else f"{snap['interactions_per_s']:.1f}"
+            rate = f"{eta}  {ips} interactions/s"
+        self._bar.update(self._bar_task, completed=self.done, rate=rate)
         self._live.update(self._renderable())
 
 

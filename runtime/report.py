@@ -23,8 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from dojo.runtime.episode import DIMENSIONS, EpisodeResult
+from dojo.runtime.policy_link import PRIVILEGED_NOTE, is_privileged
 from dojo.runtime.report_html import is_url, render_html
-from dojo.runtime.results_store import STORE_FILENAME, ResultsStore, StoreError, resolve_store_path
+from dojo.runtime.results_store import STORE_FILENAME, ResultsStore, StoreError, store_paths
+from dojo.runtime.run_dir import results_root
 from dojo.runtime.scoring import STD_DDOF, score_episodes
 from dojo.runtime.verification import ALPHA, verify
 
@@ -41,14 +43,14 @@ class ReportError(Exception):
 # ---------------------------------------------------------------------------------------------------------
 
 def load_rows(sources: Sequence[str | Path], run_ids: Collection[str] | None = None) -> list[EpisodeResult]:
-    """Read the episodes of every source (a .sqlite store or a run folder), optionally only some run ids.
+    """Read the episodes of every source (a .sqlite store, a run folder or a folder of runs), optionally only some
+    run ids.
 
     Relative video paths are resolved against their store's folder, so links work wherever the report is
     written. The same episode named twice (the same store given twice) is kept once.
     """
     rows: dict[tuple[str, str, int, int], EpisodeResult] = {}
-    for source in sources:
-        path = resolve_store_path(source)
+    for path in (p for source in sources for p in store_paths(source)):
         with ResultsStore(path, readonly=True) as store:
             for row in store.rows():
                 if run_ids is not None and row.run_id not in run_ids:
@@ -71,9 +73,11 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
             entries.append(_entry_without_public(policy, policy_rows))
             continue
         scores = score_episodes(public)
+        meta = _policy_meta(policy_rows)
         entries.append({
             "policy": policy,
-            "policy_meta": _policy_meta(policy_rows),
+            "policy_meta": meta,
+            "privileged": any(is_privileged(m) for m in meta.values()),
             "runs": sorted({r.run_id for r in policy_rows}),
             "public_episodes": len(public),
             "hidden_episodes": len(policy_rows) - len(public),
@@ -118,15 +122,19 @@ def _comparability_notes(entries: list[dict[str, Any]]) -> list[str]:
 
 
 def _leaderboard_order(entry: dict[str, Any]) -> tuple[int, float, str]:
-    """Complete entries by overall score, then partial ones (not comparable), then those with nothing scored."""
+    """Complete entries by overall score, then partial ones (not comparable), then privileged references (they
+    read the simulator state: shown for scale, never ranked), then those with nothing scored."""
     scores = entry["scores"]
     if scores is None:
-        return (2, 0.0, entry["policy"])
-    return (int(scores["partial"]), -scores["overall"]["score"]["mean"], entry["policy"])
+        return (3, 0.0, entry["policy"])
+    group = 2 if entry["privileged"] else int(scores["partial"])
+    return (group, -scores["overall"]["score"]["mean"], entry["policy"])
 
 
 def _entry_without_public(policy: str, rows: list[EpisodeResult]) -> dict[str, Any]:
-    return {"policy": policy, "policy_meta": _policy_meta(rows), "runs": sorted({r.run_id for r in rows}),
+    meta = _policy_meta(rows)
+    return {"policy": policy, "policy_meta": meta, "privileged": any(is_privileged(m) for m in meta.values()),
+            "runs": sorted({r.run_id for r in rows}),
             "public_episodes": 0, "hidden_episodes": len(rows), "scores": None,
             "verification": verify(rows).to_dict(), "plan_hashes": {}, "score_histograms": {},
             "failure_reasons": {}, "videos": []}
@@ -200,14 +208,15 @@ def _parser() -> _Parser:
         prog="dojo report",
         description="Score finished runs and write report.json and a self-contained report.html. "
                     "Several runs (or runs of several policies) make a leaderboard, one row per policy.",
-        epilog=f"RUN is a results store (.sqlite) or a run folder containing {STORE_FILENAME}.\n\n"
-               "example:\n  dojo report runs/pi05 runs/act out=reports/week12\n"
-               "  -> reports/week12/report.json, reports/week12/report.html",
+        epilog=f"RUN is a results store (.sqlite), a run folder containing {STORE_FILENAME}, or a folder of runs\n"
+               f"(every {STORE_FILENAME} below it: outputs/<suite>/<policy> holds each run of that policy).\n\n"
+               "example:\n  dojo report outputs/robodojo_sim_mini/zero outputs/robodojo_sim_mini/random\n"
+               f"  -> {results_root() / 'report'}/report.json and report.html",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("runs", nargs="+", metavar="RUN", help="results store or run folder")
-    parser.add_argument("--out", "-o", metavar="DIR", default="report",
-                        help="output folder (also accepted as out=DIR; default: ./report)")
+    parser.add_argument("runs", nargs="+", metavar="RUN", help="results store, run folder or folder of runs")
+    parser.add_argument("--out", "-o", metavar="DIR", default=str(results_root() / "report"),
+                        help=f"output folder (also accepted as out=DIR; default: {results_root() / 'report'})")
     parser.add_argument("--run-id", action="append", metavar="ID", dest="run_ids",
                         help="only these run ids (repeatable; default: every run in the stores)")
     return parser
@@ -240,9 +249,12 @@ def report_main(args: list[str]) -> int:
             continue
         overall = entry["scores"]["overall"]
         partial = " (partial)" if entry["scores"]["partial"] else ""
+        privileged = f" [{PRIVILEGED_NOTE}]" if entry["privileged"] else ""
         print(f"{entry['policy']}: score {_plain(overall['score'])}, success {_plain(overall['success'])}%"
-              f"{partial}, {entry['verification']['verdict']}")
-    print(f"wrote {out / 'report.json'} and {out / 'report.html'}")
+              f"{partial}, {entry['verification']['verdict']}{privileged}")
+    runs = sum(len(e["runs"]) for e in report["entries"])
+    print(f"wrote {out / 'report.json'} and {out / 'report.html'} ({runs} run(s) of {len(report['entries'])} "
+          "policies)")
     return 0
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dojo.runtime.episode import DIMENSION_NAMES, DIMENSIONS
+from dojo.runtime.policy_link import PRIVILEGED_NOTE
 from dojo.runtime.report_svg import dimension_chart, histogram_chart, percent, standard_random_chart
 from dojo.runtime.verification import NOT_EVALUATED
 
@@ -37,6 +38,7 @@ td.num { font-variant-numeric: tabular-nums; white-space: nowrap; }
 .badge { display: inline-block; padding: 1px 8px; border-radius: 10px; font-size: 12px; font-weight: 600; }
 .b-verified { background: #dff3e4; color: #1e6b35; } .b-unverified { background: #fbe0dd; color: #9b2218; }
 .b-not_evaluated { background: #eceef2; color: #5b6474; } .b-partial { background: #fff1d6; color: #8a5a00; }
+.b-privileged { background: #f3e8ff; color: #5b2a86; }
 .charts { display: flex; flex-wrap: wrap; gap: 18px; }
 figure { margin: 0; } figcaption { font-weight: 600; margin-bottom: 4px; }
 svg text { font-family: system-ui, sans-serif; }
@@ -89,7 +91,8 @@ def render_html(report: dict[str, Any], html_dir: Path | None = None) -> str:
         _leaderboard_table(entries),
         '<p class="muted small">Each cell: score (top) and success rate (bottom), mean <span class="pm">± std</span> '
         "over seed replicates. Average = mean of the five dimension means. Partial entries lack a dimension and "
-        "are not ranked.</p>",
+        "are not ranked; privileged references (the scripted <code>oracle</code>) read the simulator state, show "
+        "that the tasks are solvable and are not ranked either.</p>",
     ]
     if scored:
         parts += ['<h2 id="plots">Plots</h2>', '<div class="charts">',
@@ -122,8 +125,10 @@ def _leaderboard_table(entries: list[dict[str, Any]]) -> str:
         if scores["partial"]:
             badges += ' <span class="badge b-partial" title="missing dimensions: '
             badges += _e(", ".join(DIMENSION_NAMES[d] for d in scores["missing_dimensions"])) + '">partial</span>'
+        if entry.get("privileged"):
+            badges += f' <span class="badge b-privileged" title="{_e(PRIVILEGED_NOTE)}">{_e(PRIVILEGED_NOTE)}</span>'
         cells = "".join(_cell(scores["dimensions"].get(d, {}).get("metrics")) for d in DIMENSIONS)
-        rank = "—" if scores["partial"] else str(index + 1)
+        rank = "—" if scores["partial"] or entry.get("privileged") else str(index + 1)
         rows.append(f'<tr><td class="num">{rank}</td><td class="l">{policy} {badges}</td>{cells}'
                     f'{_cell(scores["overall"])}</tr>')
     return (f'<table class="leaderboard"><thead><tr><th>#</th><th class="l">Policy</th>{head}'
@@ -152,6 +157,9 @@ def _entry_section(index: int, entry: dict[str, Any], html_dir: Path | None) -> 
     runs = ", ".join(f"<code>{_e(r)}</code>" for r in entry["runs"])
     out = [f'<section class="entry" id="entry-{index}">',
            f'<h2>{_e(entry["policy"])} {_verdict_badge(entry["verification"])}</h2>',
+           (f'<p class="warn">{_e(entry["policy"])} is a {_e(PRIVILEGED_NOTE)}: it plays each task\'s scripted '
+            "expert from the simulator state, which no submitted policy is given.</p>"
+            if entry.get("privileged") else ""),
            f'<p class="muted">Runs: {runs}; {entry["public_episodes"]} public and {entry["hidden_episodes"]} '
            "hidden episodes.</p>"]
     if any(entry["policy_meta"].values()):

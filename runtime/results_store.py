@@ -83,6 +83,19 @@ def resolve_store_path(run: str | Path) -> Path:
     return path
 
 
+def store_paths(source: str | Path) -> list[Path]:
+    """What a report reads for one command-line source: a .sqlite file, a run folder, or a folder of runs (every
+    store below it, e.g. `outputs/<suite>/<policy>` after a sweep, one store per run key), in a stable order."""
+    path = Path(source)
+    if path.is_dir() and not (path / STORE_FILENAME).is_file():
+        found = sorted(path.rglob(STORE_FILENAME))
+        if found:
+            return found
+        raise StoreError(f"no results store in {str(source)!r} or below it: expected a .sqlite file, a run folder "
+                         f"containing {STORE_FILENAME}, or a folder of run folders")
+    return [resolve_store_path(path)]
+
+
 class ResultsStore:
     """A results store file, opened for writing (a run) or read-only (reports, live readers).
 

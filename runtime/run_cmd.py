@@ -20,7 +20,9 @@ from rich.table import Table
 
 from dojo.backends.mujoco.render import ensure_headless_gl
 
+from .camera_budget import budget_message, image_size, images_per_second
 from .evaluate import QueuedEpisode, evaluate, run_id_for
+from .policy_link import PRIVILEGED_NOTE, is_privileged
 from .recorder import EpisodeRecorder, record_cameras
 
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
@@ -45,13 +47,12 @@ def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
     return [int(s) for s in secrets[verification["seed_set"]]]
 
 
-def _backend_factory(cfg: DictConfig, metadata: Any, recorded: tuple[str, ...] = (),
+def _backend_factory(cfg: DictConfig, metadata: Any, cameras: tuple[str, ...], size: tuple[int, int],
                      plan_paths: dict[str, str] | None = None) -> Any:
-    """The backend renders the policy's cameras plus those being recorded, and no others. Only a policy whose
-    metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
-    privileged = bool(metadata.extra.get("privileged"))
-    cameras = tuple(metadata.cameras) + tuple(c for c in recorded if c not in metadata.cameras)
-    width, height = metadata.image_width or int(cfg.width), metadata.image_height or int(cfg.height)
+    """The backend renders `cameras` (the policy's plus those being recorded, and no others) at `size`. Only a
+    policy whose metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
+    privileged = is_privileged(metadata)
+    width, height = size
     if cfg.backend.name == "mujoco":
         from dojo.backends.mujoco.backend import MujocoBackend
 
@@ -97,16 +98,17 @@ def run_task(cfg: DictConfig) -> int:
     suite = library.get("suite", cfg.suite.id)
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
+    tasks = list(cfg.tasks) if cfg.tasks is not None else None
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
-                          demo_lengths=demos)
+                          demo_lengths=demos, tasks=tasks)
     queue = _queue(Path(stats.index), "public")
     hidden = _hidden_seeds(cfg, suite)
     if hidden:
         hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
         count = suite.data["verification"].get("episodes", 10)
         hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
-                                     demo_lengths=demos)
+                                     demo_lengths=demos, tasks=tasks)
         queue += _queue(Path(hidden_stats.index), "hidden")
 
     embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
@@ -116,18 +118,26 @@ def run_task(cfg: DictConfig) -> int:
     store_path = Path(cfg.results) if cfg.results else out_dir / "results.sqlite"
     identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_cfg,
                 "backend": cfg.backend.name, "seeds": seeds, "episodes": cfg.episodes, "hidden": bool(hidden)}
+    if tasks is not None:  # only when set: the ids of runs of whole suites stay as they were
+        identity["tasks"] = sorted(tasks)
     run_id = run_id_for(identity)
     robot_cameras = Plan.load(queue[0].plan_path).cameras if queue and cfg.record != "none" else []
     recorded = record_cameras(str(cfg.record), robot_cameras) if robot_cameras else ()
+    meta = policy.metadata
+    cameras = tuple(meta.cameras) + tuple(c for c in recorded if c not in meta.cameras)
+    width, height, size_warning = image_size(meta, cfg.width, cfg.height)
     recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=policy.metadata.action_mode,
                                                 relative_to=store_path.parent)) if recorded else None
     try:
         with ResultsStore(store_path) as store:
             store.ensure_run(run_id, identity)
             finished = store.rows(run_id)
+            if cfg.progress != "quiet":
+                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id))
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
-                evaluate(queue, _backend_factory(cfg, policy.metadata, recorded, plan_paths), policy, store, run_id,
+                evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy, store,
+                         run_id,
                          num_envs=int(cfg.num_envs), progress=progress,
                          episode_timeout_s=float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None,
                          recorder_factory=recorder_factory)
@@ -135,7 +145,8 @@ def run_task(cfg: DictConfig) -> int:
     finally:
         policy.close()
     public = [r for r in rows if r.split == "public"]
-    _print_scores(score_episodes(public), run_id, store_path, quiet=cfg.progress == "jsonl")
+    _print_scores(score_episodes(public), run_id, store_path, quiet=cfg.progress == "jsonl",
+                  privileged=is_privileged(meta))
     if cfg.report:
         report_path = Path(cfg.report)
         write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id})
@@ -143,16 +154,38 @@ def run_task(cfg: DictConfig) -> int:
     return 0
 
 
-def _print_scores(scores: Any, run_id: str, store_path: Path, quiet: bool) -> None:
-    """The leaderboard view of one run: per task, per dimension, and overall (mean over dimensions)."""
+def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,
+                          queue: list[QueuedEpisode], finished: set[tuple[str, int, int]]) -> None:
+    """Before a run that renders cameras: which, at what size, and the most it can cost here (camera_budget)."""
+    console = Console(stderr=True, soft_wrap=True)  # one line each, whatever the terminal's width
+    if warning:
+        console.print(f"[yellow]{escape(warning)}[/yellow]")
+    todo = [q for q in queue if (q.plan_hash, q.eval_seed, q.episode) not in finished]
+    if not cameras or not todo:
+        return
+    from dojo.compiler.plan import Plan
+
+    plans: dict[str, Any] = {}
+    for item in todo:  # one plan per task: the horizon is the task's
+        if item.task not in plans:
+            plans[item.task] = Plan.load(item.plan_path)
+    rate = images_per_second(plans[todo[0].task], cameras, *size)
+    console.print(escape(budget_message(meta, cameras, *size, [plans[q.task].horizon for q in todo], rate)),
+                  highlight=False)
+
+
+def _print_scores(scores: Any, run_id: str, store_path: Path, quiet: bool, privileged: bool = False) -> None:
+    """The leaderboard view of one run: per task, per dimension, and overall (mean over dimensions). A privileged
+    policy's table says that it is a reference, not a score to compare with."""
     if quiet:
-        print(json.dumps({"run_id": run_id, "results": str(store_path), "scores": scores.to_dict()}, default=str))
+        print(json.dumps({"run_id": run_id, "results": str(store_path), "scores": scores.to_dict(),
+                          "privileged": privileged}, default=str))
         return
 
     def fmt(stat: Any) -> str:
         return f"{stat.mean:.1f}" + (f" ± {stat.std:.1f}" if stat.std is not None else "")
 
-    table = Table(title=escape(f"run {run_id}"))
+    table = Table(title=escape(f"run {run_id}" + (" (privileged reference)" if privileged else "")))
     for column in ("task", "dimension", "episodes", "success %", "score"):
         table.add_column(column, justify="left" if column in ("task", "dimension") else "right")
     for task in scores.tasks:  # names come from specs (third-party packs too): never read them as markup
@@ -167,4 +200,7 @@ def _print_scores(scores: Any, run_id: str, store_path: Path, quiet: bool) -> No
     table.add_row(f"[bold]{label}", "mean of dimensions", "", fmt(scores.overall.success), fmt(scores.overall.score))
     console = Console()
     console.print(table)
-    console.print(f"results: {store_path}", markup=False)
+    if privileged:  # one unwrapped line, so that it reads (and greps) the same at any terminal width
+        print(f"{PRIVILEGED_NOTE}: these are the tasks' scripted experts, showing that the tasks are solvable; "
+              "evaluate a policy with policy=remote policy.url=ws://HOST:PORT", flush=True)
+    console.print(f"results: {store_path}", markup=False, soft_wrap=True)

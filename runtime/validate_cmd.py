@@ -2,7 +2,8 @@
 
 Exit codes are for scripts: 0 all valid, 1 some spec is invalid, 2 the command itself was misused (a path that
 does not exist, a bad flag). The built-in package is always loaded so that a third-party pack can refer to the
-built-in robots and assets; its problems are reported only when a built-in path is among those checked.
+built-in robots and assets; its problems are reported only when a built-in path is among those checked. With no
+path, the built-in specs and assets themselves are checked (wherever the package is installed).
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from dojo.compiler.spec_library import SpecLibrary, spec_files
+from dojo.compiler.spec_library import SpecLibrary, builtin_roots, spec_files
 
-EXAMPLE = "dojo validate specs/ my_pack/ --format json"
+EXAMPLE = "dojo validate specs/ my_pack/ --format json\n  dojo validate                 (the built-in specs and assets)"
 
 
 def validate_main(argv: list[str]) -> int:
@@ -25,12 +26,14 @@ def validate_main(argv: list[str]) -> int:
                     "references, and report every problem as file:line:col: $.path: message.",
         epilog=f"example:\n  {EXAMPLE}\n\nexit codes: 0 valid, 1 invalid, 2 usage error",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("paths", nargs="+", type=Path, help="spec files or folders (folders are searched for *.yaml)")
+    parser.add_argument("paths", nargs="*", type=Path,
+                        help="spec files or folders (folders are searched for *.yaml); none: the built-in ones")
     parser.add_argument("--format", choices=("text", "json"), default="text", help="output format (default: text)")
     try:
         args = parser.parse_args(argv)
     except SystemExit as stop:
         return 0 if stop.code == 0 else 2
+    args.paths = args.paths or builtin_roots()
     missing = [p for p in args.paths if not p.exists()]
     if missing:
         print(f"dojo validate: no such file or folder: {', '.join(map(str, missing))}", file=sys.stderr)

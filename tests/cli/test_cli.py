@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +104,9 @@ def test_show_renders_a_robot_and_a_task_to_png(tmp_path: Path) -> None:
     from PIL import Image
     import numpy as np
 
+    default = dojo("show", "robot=piper_bimanual", "width=32", "height=24", cwd=tmp_path)
+    assert default.returncode == 0, default.stderr
+    assert (tmp_path / "outputs" / "show" / "piper_bimanual_head.png").is_file()  # under the results root
     robot = dojo("show", "robot=piper_bimanual", f"out={tmp_path}", "width=160", "height=120")
     assert robot.returncode == 0, robot.stderr
     task = dojo("show", "task=stack_blocks", "setting=random", "seed=2", f"out={tmp_path}", "width=160",
@@ -123,3 +128,61 @@ def test_compile_writes_plans_and_reuses_them(tmp_path: Path) -> None:
     second = dojo(*args)
     assert "(0 compiled" in second.stdout and "4 reused" in second.stdout
     assert (tmp_path / "plans" / "index.json").is_file()
+
+
+def test_validate_with_no_path_checks_the_builtin_specs(tmp_path: Path) -> None:
+    result = dojo("validate", cwd=tmp_path)  # anywhere: the installed package's own specs and assets
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "all valid" in result.stdout and " suite, " in result.stdout and " task)" in result.stdout
+
+
+def test_a_broken_task_file_is_the_error_not_the_suite_that_uses_it(tmp_path: Path) -> None:
+    pack = tmp_path / "pack"
+    shutil.copytree(PACK, pack)
+    task = pack / "tasks" / "stack_test.yaml"
+    task.write_text(task.read_text().replace("dimension:", "dimensoin:", 1))
+    result = dojo("validate", str(pack))
+    assert result.returncode == 1
+    lines = result.stdout.splitlines()
+    assert "stack_test.yaml" in lines[0] and "unknown key 'dimensoin' (did you mean 'dimension'?)" in lines[0]
+    assert all("unknown task" not in line for line in lines)
+    assert "mini_test.yaml" in lines[1] and f"task 'stack_test' did not load: {task} is invalid" in lines[1]
+
+
+def test_a_misspelt_key_names_the_key_and_does_not_suggest_adding_it() -> None:
+    result = dojo("run", "polcy=zero")
+    assert result.returncode == 2
+    assert result.stderr.strip() == "dojo run: unknown key 'polcy' (did you mean 'policy'?)"
+    new = dojo("run", "zzzz=1")
+    assert "to add a new key write +zzzz=VALUE" in new.stderr
+
+
+def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "doctor", "--format", "json"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "DOJO_OUTPUTS": str(tmp_path / "results")})
+    assert result.returncode == 0, result.stderr
+    facts = json.loads(result.stdout)
+    assert facts["versions"]["robodojo"] and facts["versions"]["mujoco"] and facts["versions"]["jax"]
+    assert facts["system"]["cpu_cores"] >= 1
+    assert facts["devices"]["jax_backend"].split()[0] in ("cpu", "gpu", "cuda")
+    assert set(facts["devices"]) == {"gpus", "jax_backend", "mujoco_warp", "rendering"}
+    assert facts["folders"]["results_root"] == {"path": str(tmp_path / "results"), "exists": False, "bytes": 0,
+                                                "runs": 0}
+    text = dojo("doctor", cwd=tmp_path)
+    assert text.returncode == 0 and "results_root" in text.stdout and "plan_cache" in text.stdout
+
+
+def test_a_sweep_writes_where_single_runs_do_and_its_report_follows(tmp_path: Path) -> None:
+    """`dojo run -m policy=zero,random` then `dojo report outputs/<suite>/zero outputs/<suite>/random`."""
+    env_args = (f"packs=[{PACK}]", "suite=mini_test", "episodes=1", "progress=quiet")
+    sweep = dojo("run", "-m", "policy=zero,random", *env_args, cwd=tmp_path)
+    assert sweep.returncode == 0, sweep.stderr
+    single = dojo("run", "policy=zero", *env_args, cwd=tmp_path)  # the sweep's job: resumed, nothing re-run
+    assert single.returncode == 0, single.stderr
+    stores = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("results.sqlite"))
+    assert [p.parts[:3] for p in stores] == [("outputs", "mini_test", "random"), ("outputs", "mini_test", "zero")]
+    report = dojo("report", "outputs/mini_test/zero", "outputs/mini_test/random", cwd=tmp_path)
+    assert report.returncode == 0, report.stderr
+    assert (tmp_path / "outputs" / "report" / "report.html").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outputs"]  # no log or report in the working folder

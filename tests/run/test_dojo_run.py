@@ -140,14 +140,71 @@ def test_a_policy_that_fails_ends_only_its_episodes(tmp_path: Path) -> None:
         server.wait(timeout=30)
 
 
+CAMERA_POLICY = '''
+import numpy as np
+from xpolicylab.model import Model as Base, PolicyMetadata
+
+
+class Model(Base):
+    """Reads the head camera at 64x48 and holds the pose."""
+
+    @property
+    def metadata(self):
+        return PolicyMetadata(name="looker", cameras=("head",), chunk_size=50, image_width=64, image_height=48)
+
+    def update_obs(self, obs):
+        assert obs["images"]["head"].shape == (48, 64, 3)
+        self.pose = np.asarray(obs["state"]["joint_pos"], np.float32)
+
+    def get_action(self):
+        return np.repeat(self.pose[None], 50, axis=0)
+'''
+
+
+def test_a_run_says_what_it_renders_before_it_starts(tmp_path: Path) -> None:
+    """Cameras are most of a CPU run's time: the run names them, their size, the most images and the time."""
+    (tmp_path / "looker.py").write_text(CAMERA_POLICY)
+    port = _free_port()
+    server = subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", f"policy={tmp_path / 'looker.py'}",
+                               f"port={port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        args = (*BASE, "episodes=1", "policy=remote", f"policy.url=ws://127.0.0.1:{port}", "progress=jsonl",
+                "tasks=[stack_test]")
+        result = dojo(*args, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert "policy looker reads 1 camera(s) (head) at 64x48: up to " in result.stderr
+        assert "images for 2 episode(s), about " in result.stderr and "images/s measured" in result.stderr
+        # The folder is named by what is evaluated, not by the server's address.
+        stores = list((tmp_path / "outputs" / "mini_test" / "remote").glob("*/results.sqlite"))
+        assert [s.parent.name for s in stores] == [f"episodes=1_packs={_safe(PACK)}_tasks=stack_test"]
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def _safe(path: Path) -> str:
+    from dojo.runtime.run_dir import run_key
+
+    return run_key([f"packs=[{path}]"]).split("=", 1)[1]
+
+
+def test_tasks_keeps_only_those_of_the_suite(tmp_path: Path) -> None:
+    result = dojo(*BASE, "tasks=[stack_tset]", cwd=tmp_path)
+    assert result.returncode == 1
+    assert "suite mini_test has no task 'stack_tset' (did you mean 'stack_test'?)" in result.stderr
+
+
 def test_dojo_run_with_no_arguments(tmp_path: Path) -> None:
     """The main job right after set-up: the default suite, the built-in reference policy, the CPU backend."""
     result = dojo("run", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "overall" in result.stdout and "stack_blocks" in result.stdout
-    stores = list((tmp_path / "outputs" / "robodojo_sim_mini").glob("*/results.sqlite"))
-    assert len(stores) == 1
+    # The default policy is the privileged oracle: its table says so, plainly.
+    assert "privileged reference: reads the simulator state, not a leaderboard entry" in result.stdout
+    stores = list((tmp_path / "outputs").rglob("results.sqlite"))
+    assert stores == [tmp_path / "outputs" / "robodojo_sim_mini" / "oracle" / "default" / "results.sqlite"]
     assert len(episodes(stores[0])) == 22  # 11 tasks x 2 episodes
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outputs", "plan-cache"]  # nothing else in the cwd
 
 
 RECORDING_PACK = Path(__file__).resolve().parents[1] / "recording" / "pack"

@@ -94,3 +94,15 @@ def test_bad_arguments_are_rejected():
         Progress(3, mode="fancy")
     with pytest.raises(ValueError):
         Progress(3, mode="quiet").interactions(-1)
+
+
+def test_a_resumed_run_with_nothing_left_shows_no_rate(make_row):
+    """A resumed run used to print '0.0 interactions/s': it stepped nothing, so it has no rate to show."""
+    clock, out = FakeClock(), io.StringIO()
+    done = [make_row(episode=i) for i in range(2)]
+    progress = Progress(2, mode="rich", finished=done, stream=out, clock=clock)
+    clock.now += 3
+    progress.close()
+    assert "resumed: 2 already recorded, nothing to run" in out.getvalue()
+    assert "0.0 interactions/s" not in out.getvalue()
+    assert progress.snapshot()["interactions_per_s"] is None

@@ -206,3 +206,56 @@ def test_entries_on_different_plans_are_flagged(runs, tmp_path):
     assert report["notes"] and "not evaluated on the same public plans" in report["notes"][0]
     alone = write_report([runs[0]], tmp_path / "a.json", tmp_path / "a.html")
     assert alone["notes"] == []
+
+
+def _full_run(store_path, make_task_rows, policy: str, run_id: str, success: bool, meta: dict) -> None:
+    """A run with one task of every dimension, all episodes `success`."""
+    with ResultsStore(store_path) as store:
+        for dimension in DIMENSIONS:
+            for row in make_task_rows(f"{dimension}_task", dimension, [(success, 100.0 if success else 10.0)] * 2,
+                                      run_id=run_id, policy_name=policy, policy_meta=meta):
+                store.add(row)
+
+
+def test_a_privileged_reference_is_marked_and_never_ranked(tmp_path, make_task_rows, capsys):
+    """The scripted oracle scores 100: the report shows it for scale, after the ranked policies, marked."""
+    runs = tmp_path / "outputs" / "suite"
+    _full_run(runs / "oracle" / "default" / STORE_FILENAME, make_task_rows, "oracle", "o-1", True,
+              {"name": "oracle", "extra": {"privileged": True}})
+    _full_run(runs / "mine" / "default" / STORE_FILENAME, make_task_rows, "mine", "m-1", False, {"name": "mine"})
+    assert report_main([str(runs / "oracle"), str(runs / "mine"), f"out={tmp_path / 'board'}"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("mine: score 10.00") and "privileged" not in lines[0]
+    assert lines[1].startswith("oracle: score 100.00")
+    assert lines[1].endswith("[privileged reference: reads the simulator state, not a leaderboard entry]")
+    report = json.loads((tmp_path / "board" / "report.json").read_text())
+    assert [(e["policy"], e["privileged"]) for e in report["entries"]] == [("mine", False), ("oracle", True)]
+    page = (tmp_path / "board" / "report.html").read_text()
+    board = page[page.index('<table class="leaderboard"'):page.index("</table>")]
+    rows = board.split("<tr>")[2:]
+    assert rows[0].startswith('<td class="num">1</td>') and "mine" in rows[0]
+    assert rows[1].startswith('<td class="num">—</td>') and "b-privileged" in rows[1]
+
+
+def test_a_folder_of_runs_is_every_store_below_it(tmp_path, make_task_rows, capsys):
+    """`dojo report outputs/<suite>/<policy>` reads each run of that policy (one folder per run key)."""
+    policy = tmp_path / "outputs" / "suite" / "zero"
+    _full_run(policy / "default" / STORE_FILENAME, make_task_rows, "zero", "z-1", False, {})
+    _full_run(policy / "episodes=1" / STORE_FILENAME, make_task_rows, "zero", "z-2", False, {})
+    assert report_main([str(policy), f"out={tmp_path / 'r'}"]) == 0
+    assert "(2 run(s) of 1 policies)" in capsys.readouterr().out
+    assert report_main([str(tmp_path / "outputs" / "nothing-here"), f"out={tmp_path / 'r'}"]) == 2
+    (tmp_path / "outputs" / "empty").mkdir()
+    assert report_main([str(tmp_path / "outputs" / "empty"), f"out={tmp_path / 'r'}"]) == 2
+    assert "no results store in" in capsys.readouterr().err
+
+
+def test_the_default_report_folder_is_under_the_results_root(tmp_path, make_task_rows, monkeypatch):
+    _full_run(tmp_path / "run" / STORE_FILENAME, make_task_rows, "p", "p-1", False, {})
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("DOJO_OUTPUTS", raising=False)
+    assert report_main(["run"]) == 0
+    assert (tmp_path / "outputs" / "report" / "report.html").is_file()
+    monkeypatch.setenv("DOJO_OUTPUTS", str(tmp_path / "elsewhere"))
+    assert report_main(["run"]) == 0
+    assert (tmp_path / "elsewhere" / "report" / "report.json").is_file()
