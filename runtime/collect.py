@@ -31,9 +31,11 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from dojo.backends.mujoco.render import ensure_headless_gl
+from dojo.backends.registry import factory_from_config
 from dojo.compiler.horizon import DEFAULT_HORIZONS, HORIZONS_FORMAT, auto_horizon
 
 from .evaluate import QueuedEpisode, run_id_for
+from .policy_link import is_privileged
 from .recorder import SlotRecorder
 
 FORMATS = ("hdf5", "lerobot")
@@ -117,17 +119,14 @@ def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: 
 
 
 def _backend_factory(cfg: DictConfig, metadata: Any, plan_paths: dict[str, str]) -> Callable[[], Any]:
-    """The CPU backend rendering the collected cameras (and any the demonstrator reads); only a privileged
+    """The configured backend rendering the collected cameras (and any the demonstrator reads); only a privileged
     demonstrator (the oracle) is shown the simulator state."""
-    from dojo.backends.mujoco.backend import MujocoBackend
-
     if cfg.backend.name != "mujoco":
         raise ValueError(f"dojo collect: backend '{cfg.backend.name}' cannot collect yet; use backend=mujoco")
     cameras = tuple(cfg.cameras) + tuple(c for c in metadata.cameras if c not in cfg.cameras)
-    privileged = bool(metadata.extra.get("privileged"))
-    return lambda: MujocoBackend(num_threads=int(cfg.backend.threads) or None, cameras=cameras,
-                                 width=int(cfg.width), height=int(cfg.height), depth=bool(cfg.depth),
-                                 privileged=privileged, plan_paths=plan_paths if privileged else None)
+    return factory_from_config(OmegaConf.to_container(cfg.backend, resolve=True), cameras=cameras,
+                               width=int(cfg.width), height=int(cfg.height), depth=bool(cfg.depth),
+                               privileged=is_privileged(metadata), plan_paths=plan_paths)
 
 
 def collect_task(cfg: DictConfig) -> int:

@@ -24,11 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from dojo.backends.mujoco.backend import MujocoBackend
+from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import Plan, plan_hash
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_plan_files
 
+from .policy_link import is_privileged
 from .run_cmd import DEFAULT_PLAN_CACHE
 
 SUCCESS_BAR = 0.95
@@ -80,8 +81,8 @@ def run_policy(model: Any, paths: Sequence[Path], num_envs: int = 8, threads: in
     meta = model.metadata
     queue = list(paths)
     outcomes: list[Outcome] = []
-    backend = MujocoBackend(num_threads=threads, privileged=bool(meta.extra.get("privileged")),
-                            plan_paths={p.hash: str(k) for k, p in plans.items()})
+    backend = make_backend("mujoco", BackendOptions(privileged=is_privileged(meta), settings={"threads": threads},
+                                                    plan_paths={p.hash: str(k) for k, p in plans.items()}))
     try:
         first = [queue.pop(0) for _ in range(min(num_envs, len(queue)))]
         backend.load([plans[p] for p in first])

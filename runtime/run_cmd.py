@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -18,7 +19,9 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from dojo.backends.base import Backend
 from dojo.backends.mujoco.render import ensure_headless_gl
+from dojo.backends.registry import factory_from_config
 
 from .camera_budget import budget_message, image_size, images_per_second
 from .evaluate import QueuedEpisode, evaluate, run_id_for
@@ -48,34 +51,12 @@ def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
 
 
 def _backend_factory(cfg: DictConfig, metadata: Any, cameras: tuple[str, ...], size: tuple[int, int],
-                     plan_paths: dict[str, str] | None = None) -> Any:
-    """The backend renders `cameras` (the policy's plus those being recorded, and no others) at `size`. Only a
-    policy whose metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
-    privileged = is_privileged(metadata)
-    width, height = size
-    if cfg.backend.name == "mujoco":
-        from dojo.backends.mujoco.backend import MujocoBackend
-
-        threads = int(cfg.backend.threads) or None
-        return lambda: MujocoBackend(num_threads=threads, cameras=cameras, width=width, height=height,
-                                     privileged=privileged, plan_paths=plan_paths if privileged else None)
-    if cfg.backend.name == "mjx":
-        from dojo.backends.mjx.backend import MjxBackend
-        from dojo.compiler.plan import Plan
-
-        def make() -> MjxBackend:
-            import jax
-
-            if jax.default_backend() == "cpu":
-                Console(stderr=True).print("[yellow]backend=mjx on a CPU: expect minutes of compilation and seconds "
-                                           "per step (every contact candidate is simulated); backend=mujoco is the "
-                                           "CPU backend[/yellow]")
-            backend = MjxBackend(impl=str(cfg.backend.impl), privileged=privileged, plan_paths=plan_paths,
-                                 cameras=cameras, width=width, height=height)
-            backend.preload([Plan.load(Path(p)) for p in (plan_paths or {}).values()])  # one compilation per run
-            return backend
-        return make
-    raise ValueError(f"dojo run: unknown backend '{cfg.backend.name}'; one of mujoco, mjx")
+                     plan_paths: dict[str, str] | None = None) -> Callable[[], Backend]:
+    """The configured backend (`backend=<name>`), rendering `cameras` (the policy's plus those being recorded, and
+    no others) at `size`. Only a policy whose metadata says `extra.privileged` (the oracle) gets the simulator
+    state in its observations."""
+    return factory_from_config(OmegaConf.to_container(cfg.backend, resolve=True), cameras=cameras, width=size[0],
+                               height=size[1], privileged=is_privileged(metadata), plan_paths=plan_paths)
 
 
 def run_task(cfg: DictConfig) -> int:

@@ -8,9 +8,16 @@
 - `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`).
 """
 
+from __future__ import annotations
+
 import contextlib
 import io
 import logging
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..registry import BackendOptions
+    from .backend import MjxBackend
 
 # MJX prints "Failed to import warp: ..." to stdout when MuJoCo Warp is absent (every CPU-only machine), which
 # would break the one JSON line `dojo bench` prints; the message goes to the log instead.
@@ -18,3 +25,26 @@ with contextlib.redirect_stdout(io.StringIO()) as _printed:
     from mujoco import mjx as _mjx  # noqa: F401
 if _printed.getvalue().strip():
     logging.getLogger(__name__).debug("mujoco.mjx: %s", _printed.getvalue().strip())
+
+
+def make(options: BackendOptions) -> MjxBackend:
+    """The registry's constructor (`dojo.backends.registry`): setting `impl` (`jax`, `warp`, or auto). Every plan
+    of the run is loaded up front (`preload`), so the run compiles once."""
+    from pathlib import Path
+
+    import jax
+
+    from dojo.compiler.plan import Plan
+
+    from .backend import MjxBackend
+
+    if jax.default_backend() == "cpu":
+        logging.getLogger(__name__).warning(
+            "backend=mjx on a CPU: expect minutes of compilation and seconds per step (every contact candidate is "
+            "simulated); backend=mujoco is the CPU backend")
+    impl = options.settings.get("impl")
+    backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
+                         plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
+                         height=options.height, depth=options.depth)
+    backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
+    return backend

@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 
 from ..actions import action_dim
-from .backend import MujocoBackend
+from ..registry import BackendOptions, make_backend
 
 
 def measure_cpu(plans: Sequence[Any], num_envs: int, steps: int, num_threads: int | None = None,
@@ -39,7 +39,7 @@ def measure_cpu(plans: Sequence[Any], num_envs: int, steps: int, num_threads: in
     """
     slots = [plans[k % len(plans)] for k in range(num_envs)]
     load_before = os.getloadavg()[0]
-    with MujocoBackend(num_threads=num_threads) as backend:
+    with make_backend("mujoco", BackendOptions(settings={"threads": num_threads})) as backend:
         backend.load(slots)
         backend.reset()
         zero = np.zeros((num_envs, action_dim("joint", len(slots[0].robot["arm_joints"]) // 2)))
