@@ -114,7 +114,7 @@ COMMANDS: dict[str, Command] = {
     "collect": Command("Record demonstrations of a task as HDF5 episodes and a LeRobot v3.0 dataset.",
                        "dojo collect task=stack_blocks n=100 policy=oracle", _hydra("collect", "collect_task")),
     "bench": Command("Measure simulation, rendering or policy-link throughput (one JSON line).",
-                     "dojo bench sim modes=[cpu] cpu_envs=32", _bench),
+                     "dojo bench sim backend=mujoco num_envs=32 steps=200", _bench),
     "report": Command("Write the JSON and HTML report (leaderboard) of one or more runs.",
                       "dojo report outputs/robodojo_sim_mini/zero outputs/robodojo_sim_mini/random", _report),
     "policy": Command("Serve, check or create a policy (XPolicyLab).",
