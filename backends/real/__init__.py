@@ -6,3 +6,22 @@ maker's SDK drives over a python-can bus, so all of it runs and is tested withou
 and python-can are the optional extra `robodojo[real]` (`piper_emulator` needs python-can, `piper_driver`
 imports piper-sdk when it connects); the rest needs only the base install.
 """
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .backend import RealBackend
+
+
+def make(options: Any) -> RealBackend:
+    """The backend registry's constructor (`make(options)`, options as `dojo.backends.registry.BackendOptions`):
+    cameras, width, height and depth from the options; from the `backend=real` config's own keys (`settings`):
+    `driver` (emulator | piper), `can` (the left and right arm's CAN buses), `emulator` (EmulatorParams fields)."""
+    from .backend import RealBackend
+
+    settings = dict(options.settings)
+    return RealBackend(driver=str(settings.get("driver", "emulator")), can=settings.get("can"),
+                       cameras=options.cameras, width=options.width, height=options.height, depth=options.depth,
+                       emulator=settings.get("emulator"))

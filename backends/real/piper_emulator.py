@@ -18,7 +18,7 @@ commands: see piper_driver). A virtual channel has no kernel socket buffer, so a
 (the SDK opens a separate send-only bus on Linux) would grow without limit; the emulator keeps every other
 queue on its channel at most `rx_buffer` frames long, dropping the oldest, as a full socket buffer would.
 
-Imperfections are parameters (`EmulatorParams`): encoder noise on the joint feedback, a delay before a
+Imperfections are parameters (`emulator.EmulatorParams`): encoder noise on the joint feedback, a delay before a
 command takes effect, and a probability that any feedback frame is lost. Every command frame's arrival is
 logged on the emulator's clock (`received`), which is how latencies are measured.
 """
@@ -35,24 +35,8 @@ import numpy as np
 from can.interfaces.virtual import VirtualBus
 
 from . import piper_protocol as P
+from .emulator import EmulatorParams
 from .realtime_sim import RealTimeSim
-
-
-@dataclass(frozen=True)
-class EmulatorParams:
-    """Imperfections and rates of the emulated hardware."""
-
-    encoder_noise: float = 0.0
-    """Standard deviation (rad) of Gaussian noise on each reported joint angle."""
-    command_delay: float = 0.0
-    """Seconds between a command frame's arrival and its effect."""
-    feedback_drop: float = 0.0
-    """Probability that any one feedback frame is never sent."""
-    feedback_hz: float = 200.0
-    """Rate of the arm's periodic feedback (the PiPER's is 200 Hz)."""
-    rx_buffer: int = 512
-    """Frames a reader's queue on a virtual channel holds before the oldest are dropped."""
-    seed: int = 0
 
 
 @dataclass(frozen=True)

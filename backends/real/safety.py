@@ -68,25 +68,24 @@ class SafetyLayer:
         self.estop_time: float | None = None
         self._lock = threading.Lock()
         self._last_command: float | None = None
-        self._prev_q, self._prev_v = driver.home_pose[0], np.zeros_like(self.joint_lo)
+        self._prev_q = self._prev_v = np.zeros_like(self.joint_lo)  # set at rest by the first command
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     # ---- trials ----
 
     def new_trial(self) -> None:
-        """Zero the counters and start limiting from where the arms are now, at rest. An e-stop stays in force
-        until `release()`."""
+        """Zero the counters; the watchdog sleeps until the trial's first command, which is limited from
+        wherever the arms are then, at rest (so the robot may be moved to its start in between). An e-stop
+        stays in force until `release()`."""
         with self._lock:
             self.counters = dict.fromkeys(COUNTERS, 0)
-            self._rest_at_measured()
             self._last_command = None
 
     def release(self) -> None:
-        """The operator's go-ahead after an e-stop: accept commands again, from where the arms are."""
+        """The operator's go-ahead after an e-stop: accept commands again, from where the arms are then."""
         with self._lock:
             self.state, self.estop_time, self._last_command = RUNNING, None, None
-            self._rest_at_measured()
 
     # ---- commands ----
 
@@ -99,7 +98,7 @@ class SafetyLayer:
                 return self._refuse("refused_estop")
             if not (np.isfinite(q).all() and np.isfinite(grip).all()):
                 return self._refuse("refused_nonfinite")
-            if self.state == HOLDING:
+            if self.state == HOLDING or self._last_command is None:
                 self._rest_at_measured()
             if np.abs(q - self.driver.read().joint_pos).max() > self.config.max_jump:
                 return self._refuse("refused_jump")

@@ -1,8 +1,9 @@
 """The emulated PiPER rig for the real-robot tests, and the figures they measure.
 
-A rig is the compiler's bimanual PiPER world stepped in real time, the CAN emulator answering on two python-can
-virtual buses, and `PiperDriver` on the unmodified `piper-sdk` connected to it. Channel names are unique per rig,
-because the SDK keeps one interface object per channel name for the whole process.
+A rig is the emulated bimanual PiPER (`EmulatedRobot`) in the compiler's robot-only world: the world stepped in
+real time and the CAN emulator answering on two python-can virtual buses, for `PiperDriver` on the unmodified
+`piper-sdk` to connect to. Channel names are unique per rig, because the SDK keeps one interface object per
+channel name for the whole process.
 
 Timings are measured, never asserted: each test adds its figures with `figures.add(name, value)`; they are
 printed at the end of the run and written to `<results root>/figures/real_emulator.json`.
@@ -11,14 +12,14 @@ printed at the end of the run and written to `<results root>/figures/real_emulat
 from __future__ import annotations
 
 import json
-import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import mujoco
 import pytest
-from dojo.backends.real.piper_emulator import EmulatorParams, PiperCanEmulator
+from dojo.backends.real.emulator import EmulatedRobot, EmulatorParams
+from dojo.backends.real.piper_emulator import PiperCanEmulator
 from dojo.backends.real.realtime_sim import RealTimeSim
 from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.compiler.robot_emit import build_robot_world
@@ -63,12 +64,25 @@ def piper_world() -> tuple[mujoco.MjModel, dict[str, Any], RealRobotConfig]:
 
 @dataclass
 class Rig:
-    sim: RealTimeSim
-    emulator: PiperCanEmulator
-    channels: tuple[str, str]
-    robot: dict[str, Any]
+    emulated: EmulatedRobot
     config: RealRobotConfig
     model: mujoco.MjModel
+
+    @property
+    def sim(self) -> RealTimeSim:
+        return self.emulated.sim
+
+    @property
+    def emulator(self) -> PiperCanEmulator:
+        return self.emulated.controllers
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.emulated.channels
+
+    @property
+    def robot(self) -> dict[str, Any]:
+        return self.emulated.robot
 
 
 @pytest.fixture
@@ -78,15 +92,10 @@ def make_rig(piper_world) -> Iterator[Callable[..., Rig]]:
     started: list[Rig] = []
 
     def make(**params: Any) -> Rig:
-        sim = RealTimeSim(model, robot, config.joint_velocity)
-        channels = tuple(f"dojo-{uuid.uuid4().hex[:8]}-{side}" for side in ("left", "right"))
-        emulator = PiperCanEmulator(sim, channels, params=EmulatorParams(**params))
-        sim.start()
-        rig = Rig(sim, emulator, channels, robot, config, model)
+        rig = Rig(EmulatedRobot(model, robot, config, EmulatorParams(**params)), config, model)
         started.append(rig)
         return rig
 
     yield make
     for rig in started:
-        rig.sim.stop()
-        rig.emulator.close()
+        rig.emulated.close()
