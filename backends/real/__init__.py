@@ -18,9 +18,13 @@ if TYPE_CHECKING:
 def make(options: Any) -> RealBackend:
     """The backend registry's constructor (`make(options)`, options as `dojo.backends.registry.BackendOptions`):
     cameras, width, height and depth from the options; from the `backend=real` config's own keys (`settings`):
-    `driver` (emulator | piper), `can` (the left and right arm's CAN buses), `emulator` (EmulatorParams fields)."""
+    `driver` (emulator | piper), `can` (the left and right arm's CAN buses), `emulator` (EmulatorParams fields).
+    A robot has no simulator state to give, so a privileged policy (the oracle) cannot run on it."""
     from .backend import RealBackend
 
+    if getattr(options, "privileged", False):
+        raise ValueError("backend real: a privileged policy (the oracle) reads the simulator's state, which a "
+                         "robot does not have; evaluate a policy that reads observations")
     settings = dict(options.settings)
     return RealBackend(driver=str(settings.get("driver", "emulator")), can=settings.get("can"),
                        cameras=options.cameras, width=options.width, height=options.height, depth=options.depth,

@@ -8,6 +8,7 @@ action refused by the safety layer and ending the episode.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -97,12 +98,15 @@ def test_a_reset_restores_the_scene_and_a_non_finite_action_ends_the_episode(bac
 
 
 def test_the_registry_constructor_reads_the_backend_config() -> None:
-    class Options:  # the fields of dojo.backends.registry.BackendOptions that the real backend reads
-        cameras, width, height, depth = ("head",), 32, 24, False
-        settings = {"driver": "piper", "can": "can_a,can_b"}
+    from dojo.backends.registry import BackendOptions
 
+    options = BackendOptions(cameras=("head",), width=32, height=24,
+                             settings={"driver": "piper", "can": "can_a,can_b"})
     with pytest.raises(NotImplementedError, match="hardware cameras"):
-        make(Options())
-    Options.cameras = ()
-    with make(Options()) as real:
+        make(options)
+    with pytest.raises(ValueError, match="privileged"):
+        make(BackendOptions(privileged=True))
+    with make(dataclasses.replace(options, cameras=())) as real:
         assert isinstance(real, RealBackend) and real.driver_name == "piper" and real.can == ("can_a", "can_b")
+    with make(BackendOptions(settings={"emulator": {"encoder_noise": 0.001}})) as real:
+        assert real.driver_name == "emulator" and real.emulator_params.encoder_noise == 0.001
