@@ -118,8 +118,7 @@ def run_task(cfg: DictConfig) -> int:
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
                 evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy, store,
-                         run_id,
-                         num_envs=int(cfg.num_envs), progress=progress,
+                         run_id, num_envs=int(cfg.num_envs), progress=progress,
                          episode_timeout_s=float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None,
                          recorder_factory=recorder_factory)
             rows = store.rows(run_id)

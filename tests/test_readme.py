@@ -122,11 +122,18 @@ def script(commands: list[Command], markers: Path) -> str:
     return "\n".join(out) + "\n"
 
 
-def _fresh_clone(dest: Path) -> Path:
-    """The working tree's files that git would commit (tracked or not ignored), as a new user's clone has them."""
-    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
-                            capture_output=True, text=True, check=True).stdout.split("\0")
-    for name in filter(None, listed):
+def _git_files(*flags: str) -> list[str]:
+    out = subprocess.run(["git", "ls-files", "-z", *flags], cwd=REPO, capture_output=True, text=True, check=True)
+    return [name for name in out.stdout.split("\0") if name]
+
+
+def _fresh_clone(dest: Path, made_by_readme: set[str]) -> Path:
+    """The working tree's files that git would commit (tracked, or new and not ignored), as a new user's clone
+    has them; untracked folders the quick start itself makes (`my_policy/` of a run in this checkout) are left
+    out, or the copy would not be fresh."""
+    names = _git_files("--cached") + [n for n in _git_files("--others", "--exclude-standard")
+                                      if n.split("/")[0] not in made_by_readme]
+    for name in names:
         source = REPO / name
         if source.is_file():
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
@@ -138,7 +145,7 @@ def _run(commands: list[Command], tmp_path: Path, env: dict[str, str], timeout: 
     ports = {p: str(_free_port()) for p in README_PORTS}
     commands = [Command(re.sub("|".join(ports), lambda m: ports[m.group(0)], c.text), c.outputs, c.line)
                 for c in commands]
-    clone = _fresh_clone(tmp_path / "robodojo")
+    clone = _fresh_clone(tmp_path / "robodojo", {o.split("/")[0] for c in commands for o in c.outputs})
     markers = tmp_path / "markers"
     result = subprocess.run(["bash", "-c", script(commands, markers)], cwd=clone, env=env, capture_output=True,
                             text=True, timeout=timeout)
