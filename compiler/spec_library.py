@@ -17,7 +17,8 @@ from typing import Any, Iterable
 from .spec_errors import JsonPath, SpecError, SpecProblem, did_you_mean, display_path
 from .spec_schema import SPEC_KINDS, RefUse, validate_spec_data
 from .spec_yaml import Located, read_spec_yaml
-from .task_checks import TRAINING_DIMENSIONS, task_problems
+from .task_checks import task_problems
+from .taxonomy import taxonomy_of
 
 SINGLE_TARGET_KINDS = ("robot", "suite", "task")
 
@@ -189,7 +190,7 @@ class SpecLibrary:
         scope = self._scope(owner.package, use.kind)
         if owner.kind == "suite" and use.kind == "task" and found:
             dimension = found[0].data.get("dimension")
-            if dimension in TRAINING_DIMENSIONS:
+            if dimension in taxonomy_of(self).training_only:
                 return owner.problem(use.path, f"task '{found[0].id}' is training-only (dimension {dimension}): "
                                                "suites evaluate; demonstrate it with `dojo collect` instead")
         if isinstance(use.value, str):
@@ -233,7 +234,25 @@ class SpecLibrary:
             if spec.kind == "task":
                 for path, message, key in task_problems(spec.data):
                     self.problems.append(spec.problem(path, message, key=key))
+        self._check_dimensions()
         self._check_suite_cycles()
+
+    def _check_dimensions(self) -> None:
+        """Every task's dimension is in the taxonomy; a pack adds dimensions but never redefines one."""
+        seen: dict[str, Spec] = {}
+        for spec in self.of_kind("taxonomy"):
+            for i, dimension in enumerate(spec.data["dimensions"]):
+                first = seen.setdefault(dimension["id"], spec)
+                if first is not spec:
+                    self.problems.append(spec.problem(("dimensions", i, "id"), f"dimension '{dimension['id']}' is "
+                                                      f"defined already (taxonomy {first.id}, {first.display})"))
+        known = taxonomy_of(self).ids
+        for task in self.of_kind("task"):
+            dimension = task.data["dimension"]
+            if dimension not in known:
+                self.problems.append(task.problem(("dimension",), f"unknown dimension '{dimension}'"
+                                                  f"{did_you_mean(dimension, known)} (a pack adds dimensions with a "
+                                                  "`kind: taxonomy` spec)"))
 
     def _check_suite_cycles(self) -> None:
         reported: set[frozenset[str]] = set()

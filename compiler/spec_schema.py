@@ -30,7 +30,7 @@ from dojo.language import skills as skill_words
 from .spec_errors import JsonPath, SpecProblem, did_you_mean
 from .spec_yaml import Located
 
-SPEC_KINDS = ("asset", "robot", "suite", "task")
+SPEC_KINDS = ("asset", "robot", "suite", "task", "taxonomy")
 SCHEMA_BASE = "https://robodojo.dev/schemas/"
 
 

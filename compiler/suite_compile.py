@@ -23,6 +23,7 @@ from typing import Callable
 from .plan import compile_plan, compiler_id, plan_hash
 from .spec_errors import did_you_mean
 from .spec_library import Spec, SpecLibrary
+from .taxonomy import taxonomy_of
 
 SEED_STRIDE = 10_000
 INDEX_FORMAT = "robodojo-plan-index/1"
@@ -54,13 +55,15 @@ def suite_episodes(library: SpecLibrary, suite: Spec, *, seeds: list[int] | None
                 raise KeyError(f"suite {suite.id} has no task '{wanted}'{did_you_mean(str(wanted), ids)}; "
                                f"its tasks: {', '.join(ids)}")
         entries = [(task, entry) for task, entry in entries if task.id in set(tasks)]
+    taxonomy = taxonomy_of(library)
     out = []
     for task, entry in entries:
         count = int(episodes or entry.get("episodes") or suite.data.get("episodes", 50))
         dimension = task.data["dimension"]
-        if dimension == "generalization":
-            n_standard = round(count * standard_share)
-            split = [("standard", n_standard), ("random", count - n_standard)]
+        compared = taxonomy.compare_settings(dimension)  # RoboDojo's Generalization: standard and random
+        if compared:
+            n_first = round(count * standard_share)
+            split = [(compared[0], n_first), (compared[1], count - n_first)]
         else:
             split = [("standard", count)]
         for eval_seed in seeds:

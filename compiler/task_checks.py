@@ -14,8 +14,6 @@ from .spec_errors import JsonPath, did_you_mean
 Problem = tuple[JsonPath, str, bool]  # (path, message, points at the key rather than the value)
 
 BUILTIN_NAMES = {"table"}
-TRAINING_DIMENSIONS: tuple[str, ...] = ("dlc",)
-"""Dimensions whose tasks are demonstrated (`dojo collect`) but never evaluated: a suite may not list them."""
 
 
 def _defined_names(task: dict) -> tuple[set[str], set[str], set[str]]:

@@ -39,9 +39,6 @@ from .policy_link import is_privileged
 from .recorder import SlotRecorder
 
 FORMATS = ("hdf5", "lerobot")
-# Dimensions whose tasks are never demonstrated: Open tasks test what no demonstration showed. Training-only
-# dimensions (DLC) are collected like the scored ones; that is all they are for.
-EVALUATION_ONLY = ("open",)
 
 
 def write_horizons(path: Path, task: str, lengths: list[int], *, auto_generated: bool) -> dict[str, Any]:
@@ -134,7 +131,8 @@ def collect_task(cfg: DictConfig) -> int:
     ensure_headless_gl()
     from dojo.compiler.spec_library import SpecLibrary
 
-    from .episode import DIMENSIONS, TRAINING_DIMENSIONS
+    from dojo.compiler.taxonomy import taxonomy_of
+
     from .evaluate import evaluate
     from .policy_link import open_policy
     from .progress import Progress
@@ -156,12 +154,11 @@ def collect_task(cfg: DictConfig) -> int:
     library = SpecLibrary.load(packs)
     task = library.get("task", str(cfg.task))
     dimension = task.data["dimension"]
-    if dimension in EVALUATION_ONLY:
+    # Evaluation-only dimensions (RoboDojo's Open) test what no demonstration showed: their tasks are refused.
+    # Training-only ones (DLC) are collected like the scored ones; that is all they are for.
+    if dimension in taxonomy_of(library).evaluation_only:
         raise ValueError(f"dojo collect: task {task.id} is in dimension '{dimension}', which is evaluation only: "
                          "its tasks have no training demonstrations (RoboDojo's protocol)")
-    if dimension not in DIMENSIONS + TRAINING_DIMENSIONS:  # the episode rows that make collection resumable
-        raise ValueError(f"dojo collect: task {task.id} is in dimension '{dimension}', which episode rows do not "
-                         f"accept (one of {', '.join(DIMENSIONS + TRAINING_DIMENSIONS)})")
     out = Path(cfg.out) if cfg.out else Path("datasets") / task.id
     episodes_dir = out / "hdf5" if "hdf5" in formats else out / ".episodes"
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / f"collect-{task.id}"

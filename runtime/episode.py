@@ -9,25 +9,14 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import asdict, dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from dojo.compiler.task_checks import TRAINING_DIMENSIONS
-
-# The five capability dimensions of RoboDojo, in the order the paper's leaderboard prints them: the scored ones.
-DIMENSIONS: tuple[str, ...] = ("generalization", "precision", "long_horizon", "memory", "open")
-# Training-only dimensions (TRAINING_DIMENSIONS): their tasks are demonstrated (`dojo collect` keeps a row per
-# episode, to resume) but never evaluated, so they are not in DIMENSIONS, which scores, reports and progress use.
-DIMENSION_NAMES: dict[str, str] = {
-    "generalization": "Generalization",
-    "precision": "Precision",
-    "long_horizon": "Long-Horizon",
-    "memory": "Memory",
-    "open": "Open",
-    "dlc": "DLC (training only)",
-}
+# A dimension is an id of the taxonomy (`dojo.compiler.taxonomy`); which ones are scored is scoring's business.
+DIMENSION_ID = re.compile(r"^[a-z][a-z0-9_]*$")
 # `public` rows are the leaderboard; `hidden` rows come from a suite's private verification seed set.
 SPLITS: tuple[str, ...] = ("public", "hidden")
 
@@ -76,8 +65,8 @@ class EpisodeResult:
                 raise ValueError(f"EpisodeResult.{name} must be a non-empty string, got {value!r}")
         if self.split not in SPLITS:
             raise ValueError(f"EpisodeResult.split must be one of {SPLITS}, got {self.split!r}")
-        if self.dimension not in DIMENSIONS + TRAINING_DIMENSIONS:
-            raise ValueError(f"EpisodeResult.dimension must be one of {DIMENSIONS + TRAINING_DIMENSIONS}, "
+        if not isinstance(self.dimension, str) or not DIMENSION_ID.match(self.dimension):
+            raise ValueError(f"EpisodeResult.dimension must be a dimension id (lower-case letters, digits, _), "
                              f"got {self.dimension!r}")
         for name in ("eval_seed", "episode", "scene_seed", "steps"):
             self._set(name, _integer(name, getattr(self, name)))

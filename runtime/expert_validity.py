@@ -28,6 +28,7 @@ from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import Plan, plan_hash
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_plan_files
+from dojo.compiler.taxonomy import taxonomy_of
 
 from .policy_link import is_privileged
 from .run_cmd import DEFAULT_PLAN_CACHE
@@ -46,12 +47,13 @@ class Outcome:
 
 
 def episode_list(library: SpecLibrary, task: str, seeds: int) -> list[tuple[str, int]]:
-    """(setting, scene seed) of the first `seeds` episodes: half standard, half random for Generalization."""
-    data = library.get("task", task).data
-    if data["dimension"] != "generalization":
+    """(setting, scene seed) of the first `seeds` episodes: half in each setting for a dimension that compares two
+    (RoboDojo's Generalization: standard and random), else all standard."""
+    compared = taxonomy_of(library).compare_settings(library.get("task", task).data["dimension"])
+    if not compared:
         return [("standard", i) for i in range(seeds)]
-    standard = (seeds + 1) // 2
-    return [("standard", i) for i in range(standard)] + [("random", i) for i in range(seeds - standard)]
+    first = (seeds + 1) // 2
+    return [(compared[0], i) for i in range(first)] + [(compared[1], i) for i in range(seeds - first)]
 
 
 def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Path, jobs: int = 1
@@ -165,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=DEFAULT_PLAN_CACHE / "validity")
     args = parser.parse_args(argv)
     library = SpecLibrary.load([])
-    tasks = args.tasks or sorted(s.id for s in library.of_kind("task") if s.data["dimension"] != "dlc")
+    training_only = taxonomy_of(library).training_only
+    tasks = args.tasks or sorted(s.id for s in library.of_kind("task") if s.data["dimension"] not in training_only)
     files = plan_files(library, tasks, args.seeds, args.cache, jobs=args.jobs)
     table = policies()
     print("| task | episodes | " + " | ".join(f"{p} success | {p} score" for p in args.policies) + " |")

@@ -25,8 +25,8 @@ from rich.live import Live
 from rich.progress import BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn
 from rich.text import Text
 
-from dojo.compiler.task_checks import TRAINING_DIMENSIONS
-from dojo.runtime.episode import DIMENSION_NAMES, DIMENSIONS, EpisodeResult
+from dojo.compiler.taxonomy import builtin_taxonomy
+from dojo.runtime.episode import EpisodeResult
 
 MODES = ("rich", "jsonl", "quiet")
 
@@ -130,8 +130,7 @@ class Progress:
             else None,  # a resumed run with nothing left to step has no rate (not a rate of 0)
             "success_by_dimension": {
                 d: {"successes": s, "episodes": n, "success_pct": round(100.0 * s / n, 2)}
-                for d, (s, n) in ((d, self._dim_counts[d]) for d in DIMENSIONS + TRAINING_DIMENSIONS
-                                  if d in self._dim_counts)
+                for d, (s, n) in ((d, self._dim_counts[d]) for d in _in_taxonomy_order(self._dim_counts))
             },
         }
 
@@ -150,7 +149,7 @@ class Progress:
     def _renderable(self) -> Group:
         snap = self.snapshot()
         dims = Text("  ".join(
-            f"{DIMENSION_NAMES[d]} {v['success_pct']:.1f}% ({v['successes']}/{v['episodes']})"
+            f"{builtin_taxonomy().label(d)} {v['success_pct']:.1f}% ({v['successes']}/{v['episodes']})"
             for d, v in snap["success_by_dimension"].items()
         ) or "no episodes finished yet", style="dim")
         return Group(self._bar, dims)
@@ -175,3 +174,9 @@ def _duration(seconds: float) -> str:
     hours, rest = divmod(seconds, 3600)
     minutes, secs = divmod(rest, 60)
     return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
+
+
+def _in_taxonomy_order(dimensions: Iterable[str]) -> list[str]:
+    """RoboDojo's dimensions in report order (scored, then training-only), then any a pack added."""
+    known = builtin_taxonomy().ids
+    return sorted(dimensions, key=lambda d: (known.index(d) if d in known else len(known), d))

@@ -22,7 +22,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from dojo.runtime.episode import DIMENSIONS, EpisodeResult
+from dojo.compiler.taxonomy import Taxonomy, builtin_taxonomy
+from dojo.runtime.episode import EpisodeResult
 from dojo.runtime.policy_link import PRIVILEGED_NOTE, is_privileged
 from dojo.runtime.report_html import is_url, render_html
 from dojo.runtime.results_store import STORE_FILENAME, ResultsStore, StoreError, store_paths
@@ -61,8 +62,11 @@ def load_rows(sources: Sequence[str | Path], run_ids: Collection[str] | None = N
     return list(rows.values())
 
 
-def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = ()) -> dict[str, Any]:
-    """The report as plain data: one entry per policy, sorted into a leaderboard by overall score."""
+def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = (),
+                 taxonomy: Taxonomy | None = None) -> dict[str, Any]:
+    """The report as plain data: one entry per policy, sorted into a leaderboard by overall score, over the scored
+    dimensions of `taxonomy` (RoboDojo's when None)."""
+    taxonomy = taxonomy or builtin_taxonomy()
     by_policy: dict[str, list[EpisodeResult]] = defaultdict(list)
     for row in rows:
         by_policy[row.policy_name].append(row)
@@ -72,7 +76,7 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
         if not public:
             entries.append(_entry_without_public(policy, policy_rows))
             continue
-        scores = score_episodes(public)
+        scores = score_episodes(public, taxonomy=taxonomy)
         meta = _policy_meta(policy_rows)
         entries.append({
             "policy": policy,
@@ -84,7 +88,7 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
             "scores": scores.to_dict(),
             "verification": verify(policy_rows).to_dict(),
             "plan_hashes": _plan_hashes(public),
-            "score_histograms": _histograms(public),
+            "score_histograms": _histograms(public, taxonomy),
             "failure_reasons": _failure_reasons(public),
             "videos": [
                 {"task": r.task, "setting": r.setting, "run_id": r.run_id, "eval_seed": r.eval_seed,
@@ -107,6 +111,7 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
                             "Fisher exact test when an expected cell count is below 5",
         },
         "notes": _comparability_notes(entries),
+        "dimensions": [{"id": d, "label": taxonomy.label(d)} for d in taxonomy.scored],
         "entries": entries,
     }
 
@@ -155,13 +160,13 @@ def _plan_hashes(rows: Sequence[EpisodeResult]) -> dict[str, list[str]]:
     return {task: sorted(hashes[task]) for task in sorted(hashes)}
 
 
-def _histograms(rows: Sequence[EpisodeResult]) -> dict[str, list[int]]:
+def _histograms(rows: Sequence[EpisodeResult], taxonomy: Taxonomy) -> dict[str, list[int]]:
     """Per dimension, episode counts in score bins [0,10), [10,20), ..., [90,100]."""
     hist: dict[str, list[int]] = {}
     for r in rows:
         bins = hist.setdefault(r.dimension, [0] * HISTOGRAM_BINS)
         bins[min(int(r.score // (100 / HISTOGRAM_BINS)), HISTOGRAM_BINS - 1)] += 1
-    return {d: hist[d] for d in DIMENSIONS if d in hist}
+    return {d: hist[d] for d in taxonomy.ids if d in hist}
 
 
 def _failure_reasons(rows: Sequence[EpisodeResult]) -> dict[str, dict[str, int]]:
@@ -174,14 +179,14 @@ def _failure_reasons(rows: Sequence[EpisodeResult]) -> dict[str, dict[str, int]]
 
 def write_report(
     sources: Sequence[str | Path], out_json: str | Path, out_html: str | Path, *,
-    run_ids: Collection[str] | None = None,
+    run_ids: Collection[str] | None = None, taxonomy: Taxonomy | None = None,
 ) -> dict[str, Any]:
     """Load the runs, score them, and write both files. Returns the report data."""
     rows = load_rows(sources, run_ids)
     if not rows:
         which = "" if run_ids is None else f" for run ids {sorted(run_ids)}"
         raise ReportError(f"no episodes found in {', '.join(map(str, sources))}{which}")
-    report = build_report(rows, sources)
+    report = build_report(rows, sources, taxonomy)
     out_json, out_html = Path(out_json), Path(out_html)
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_html.parent.mkdir(parents=True, exist_ok=True)

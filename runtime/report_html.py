@@ -16,9 +16,9 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from dojo.runtime.episode import DIMENSION_NAMES, DIMENSIONS
 from dojo.runtime.policy_link import PRIVILEGED_NOTE
 from dojo.runtime.report_svg import dimension_chart, histogram_chart, percent, standard_random_chart
+from dojo.runtime.scoring import report_dimensions
 from dojo.runtime.verification import NOT_EVALUATED
 
 _CSS = """
@@ -75,6 +75,7 @@ def _cell(metrics: dict[str, Any] | None) -> str:
 def render_html(report: dict[str, Any], html_dir: Path | None = None) -> str:
     """The whole page as one string (no external resources)."""
     entries = report["entries"]
+    dims = report_dimensions(report)
     scored = [e for e in entries if e["scores"] is not None]
     parts = [
         "<!DOCTYPE html>",
@@ -88,31 +89,31 @@ def render_html(report: dict[str, Any], html_dir: Path | None = None) -> str:
         f'{", ".join(f"<code>{_e(s)}</code>" for s in report["sources"]) or "rows given directly"}.</p>',
         '<h2 id="leaderboard">Leaderboard</h2>',
         "".join(f'<p class="warn">{_e(n)}</p>' for n in report["notes"]),
-        _leaderboard_table(entries),
+        _leaderboard_table(entries, dims),
         '<p class="muted small">Each cell: score (top) and success rate (bottom), mean <span class="pm">± std</span> '
-        "over seed replicates. Average = mean of the five dimension means. Partial entries lack a dimension and "
+        "over seed replicates. Average = mean of the dimension means. Partial entries lack a dimension and "
         "are not ranked; privileged references (the scripted <code>oracle</code>) read the simulator state, show "
         "that the tasks are solvable and are not ranked either.</p>",
     ]
     if scored:
         parts += ['<h2 id="plots">Plots</h2>', '<div class="charts">',
-                  _figure("Score by dimension", dimension_chart(scored, "score")),
-                  _figure("Success rate by dimension (%)", dimension_chart(scored, "success")),
+                  _figure("Score by dimension", dimension_chart(scored, "score", dims)),
+                  _figure("Success rate by dimension (%)", dimension_chart(scored, "success", dims)),
                   ]
         gen = [e for e in scored if e["scores"]["generalization"] is not None]
         if gen:
             parts.append(_figure("Generalization: standard vs random score", standard_random_chart(gen)))
         parts.append("</div>")
         parts.append("<h3>Score distributions (public episodes, share of episodes per score bin)</h3>")
-        parts += [_figure(e["policy"], histogram_chart(e["score_histograms"])) for e in scored]
-    parts += [_entry_section(i, e, html_dir) for i, e in enumerate(entries)]
+        parts += [_figure(e["policy"], histogram_chart(e["score_histograms"], dims)) for e in scored]
+    parts += [_entry_section(i, e, html_dir, dims) for i, e in enumerate(entries)]
     parts.append(_method_section(report["method"]))
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def _leaderboard_table(entries: list[dict[str, Any]]) -> str:
-    head = "".join(f"<th>{_e(DIMENSION_NAMES[d])}</th>" for d in DIMENSIONS)
+def _leaderboard_table(entries: list[dict[str, Any]], dims: dict[str, str]) -> str:
+    head = "".join(f"<th>{_e(label)}</th>" for label in dims.values())
     rows = []
     for index, entry in enumerate(entries):
         scores = entry["scores"]
@@ -120,14 +121,14 @@ def _leaderboard_table(entries: list[dict[str, Any]]) -> str:
         badges = _verdict_badge(entry["verification"])
         if scores is None:
             rows.append(f'<tr><td class="num">—</td><td class="l">{policy} {badges}</td>'
-                        + '<td class="num muted">—</td>' * (len(DIMENSIONS) + 1) + "</tr>")
+                        + '<td class="num muted">—</td>' * (len(dims) + 1) + "</tr>")
             continue
         if scores["partial"]:
             badges += ' <span class="badge b-partial" title="missing dimensions: '
-            badges += _e(", ".join(DIMENSION_NAMES[d] for d in scores["missing_dimensions"])) + '">partial</span>'
+            badges += _e(", ".join(dims.get(d, d) for d in scores["missing_dimensions"])) + '">partial</span>'
         if entry.get("privileged"):
             badges += f' <span class="badge b-privileged" title="{_e(PRIVILEGED_NOTE)}">{_e(PRIVILEGED_NOTE)}</span>'
-        cells = "".join(_cell(scores["dimensions"].get(d, {}).get("metrics")) for d in DIMENSIONS)
+        cells = "".join(_cell(scores["dimensions"].get(d, {}).get("metrics")) for d in dims)
         rank = "—" if scores["partial"] or entry.get("privileged") else str(index + 1)
         rows.append(f'<tr><td class="num">{rank}</td><td class="l">{policy} {badges}</td>{cells}'
                     f'{_cell(scores["overall"])}</tr>')
@@ -152,7 +153,7 @@ def _table(headers: list[str], rows: list[list[str]], align: str, *, cls: str = 
     return f'<table class="{cls}"><thead><tr>{cells("th", headers)}</tr></thead><tbody>{body}</tbody></table>'
 
 
-def _entry_section(index: int, entry: dict[str, Any], html_dir: Path | None) -> str:
+def _entry_section(index: int, entry: dict[str, Any], html_dir: Path | None, dims: dict[str, str]) -> str:
     scores = entry["scores"]
     runs = ", ".join(f"<code>{_e(r)}</code>" for r in entry["runs"])
     out = [f'<section class="entry" id="entry-{index}">',
@@ -173,7 +174,7 @@ def _entry_section(index: int, entry: dict[str, Any], html_dir: Path | None) -> 
     out.append(f'<p class="small muted">Seed replicates ({len(scores["replicates"])}): {reps}</p>')
     notes = list(scores["notes"])
     if scores["partial"]:
-        missing = ", ".join(DIMENSION_NAMES[d] for d in scores["missing_dimensions"])
+        missing = ", ".join(dims.get(d, d) for d in scores["missing_dimensions"])
         notes.insert(0, f"partial: no tasks of {missing}; the average covers the other dimensions only")
     if notes:
         out.append('<ul class="notes">' + "".join(f"<li>{_e(n)}</li>" for n in notes) + "</ul>")
@@ -184,7 +185,7 @@ def _entry_section(index: int, entry: dict[str, Any], html_dir: Path | None) -> 
         rows.append(["relative drop", percent(gen["relative_drop_score"]), percent(gen["relative_drop_success"])])
         out.append("<h3>Generalization: standard vs random</h3>"
                    + _table(["Setting", "Score", "Success"], rows, "lnn", cls="compact"))
-    out.append(_task_table(entry))
+    out.append(_task_table(entry, dims))
     out.append(_videos_block(entry, html_dir))
     hashes = [[_e(task), "<br>".join(_e(h) for h in plan_hashes)] for task, plan_hashes in entry["plan_hashes"].items()]
     out.append("<details><summary>Plan hashes (public)</summary>"
@@ -199,7 +200,7 @@ def _verification_block(v: dict[str, Any]) -> str:
             f'<span class="muted">{_e(v["test"]["test"])}, alpha = {_e(v["alpha"])}.</span></p>')
 
 
-def _task_table(entry: dict[str, Any]) -> str:
+def _task_table(entry: dict[str, Any], dims: dict[str, str]) -> str:
     rows = []
     for task in entry["scores"]["tasks"]:
         settings = task["settings"]
@@ -208,7 +209,7 @@ def _task_table(entry: dict[str, Any]) -> str:
             split = f'{settings["standard"]["score"]["mean"]:.2f} / {settings["random"]["score"]["mean"]:.2f}'
         reasons = list(entry["failure_reasons"].get(task["task"], {}).items())[:3]
         top = "; ".join(f"{_e(reason)} ×{count}" for reason, count in reasons) or "—"
-        rows.append([_e(task["task"]), _e(DIMENSION_NAMES[task["dimension"]]), str(task["episodes"]),
+        rows.append([_e(task["task"]), _e(dims.get(task["dimension"], task["dimension"])), str(task["episodes"]),
                      _fmt_stat(task["metrics"]["score"], False), _fmt_stat(task["metrics"]["success"], True), split,
                      f'<span class="small">{top}</span>'])
     headers = ["Task", "Dimension", "Episodes", "Score", "Success", "Standard / random score", "Top failure reasons"]

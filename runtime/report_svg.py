@@ -10,7 +10,6 @@ from __future__ import annotations
 import html
 from typing import Any
 
-from dojo.runtime.episode import DIMENSION_NAMES, DIMENSIONS
 
 _LEGEND_COLUMNS = 3
 _PALETTE = ("#3b6fb6", "#e07b39", "#3a9a5b", "#c0392b", "#8e6bbf", "#8c564b", "#d35fa7", "#7f7f7f",
@@ -105,12 +104,12 @@ def _stat_of(metrics: dict[str, Any] | None, metric: str) -> tuple[float | None,
     return metrics[metric]["mean"], metrics[metric]["std"]
 
 
-def dimension_chart(entries: list[dict[str, Any]], metric: str) -> str:
+def dimension_chart(entries: list[dict[str, Any]], metric: str, dims: dict[str, str]) -> str:
     """Per dimension and the average, one bar per leaderboard entry (`metric`: "score" or "success")."""
-    groups = [DIMENSION_NAMES[d] for d in DIMENSIONS] + ["Average"]
+    groups = list(dims.values()) + ["Average"]
     series = []
     for e in entries:
-        pairs = [_stat_of(e["scores"]["dimensions"].get(d, {}).get("metrics"), metric) for d in DIMENSIONS]
+        pairs = [_stat_of(e["scores"]["dimensions"].get(d, {}).get("metrics"), metric) for d in dims]
         pairs.append(_stat_of(e["scores"]["overall"], metric))
         series.append((e["policy"], [p[0] for p in pairs], [p[1] for p in pairs]))
     return _bar_chart(groups, series)
@@ -127,27 +126,28 @@ def standard_random_chart(entries: list[dict[str, Any]]) -> str:
                       sublabels=[f"drop {percent(g['relative_drop_score'])}" for g in gens])
 
 
-def histogram_chart(hist: dict[str, list[int]]) -> str:
+def histogram_chart(hist: dict[str, list[int]], dims: dict[str, str]) -> str:
     """Small multiples, one panel per dimension: the share of episodes in each score bin (full height = 100 %)."""
     panel_w, panel_h, gap, top, bottom = 200, 110, 16, 18, 22
-    dims = [d for d in DIMENSIONS if d in hist]
-    width = len(dims) * (panel_w + gap)
+    shown = [d for d in dims if d in hist]
+    width = len(shown) * (panel_w + gap)
     base, half = top + panel_h, top + panel_h / 2
     out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{base + bottom}" '
            f'role="img" class="chart histogram">']
-    for i, d in enumerate(dims):
+    for i, d in enumerate(shown):
         counts, x0 = hist[d], i * (panel_w + gap)
         total = sum(counts)
         bar_w = panel_w / len(counts)
+        colour = _PALETTE[list(dims).index(d) % len(_PALETTE)]
         out.append(f'<text x="{x0 + panel_w / 2:.1f}" y="12" font-size="12" text-anchor="middle">'
-                   f'{_e(DIMENSION_NAMES[d])} (n={total})</text>'
+                   f'{_e(dims[d])} (n={total})</text>'
                    f'<line x1="{x0}" x2="{x0 + panel_w}" y1="{half}" y2="{half}" stroke="#e6e9ee"/>'
                    f'<text x="{x0 + panel_w}" y="{half - 3}" font-size="9" text-anchor="end" fill="#5b6474">50%</text>')
         for b, c in enumerate(counts):
             h = panel_h * c / total
             lo, hi = b * 100 // len(counts), (b + 1) * 100 // len(counts)
             out.append(f'<rect x="{x0 + b * bar_w + 0.5:.1f}" y="{base - h:.1f}" width="{bar_w - 1:.1f}" '
-                       f'height="{h:.1f}" fill="{_PALETTE[DIMENSIONS.index(d)]}"><title>score {lo}-{hi}: {c} '
+                       f'height="{h:.1f}" fill="{colour}"><title>score {lo}-{hi}: {c} '
                        f'episodes ({100 * c / total:.1f}%)</title></rect>')
         out.append(f'<line x1="{x0}" x2="{x0 + panel_w}" y1="{base}" y2="{base}" stroke="#5b6474"/>'
                    f'<text x="{x0}" y="{base + 14}" font-size="10" fill="#5b6474">0</text>'

@@ -68,6 +68,7 @@ def run_task(cfg: DictConfig) -> int:
     from dojo.compiler.horizon import horizons_file, load_demo_lengths
     from dojo.compiler.spec_library import SpecLibrary
     from dojo.compiler.suite_compile import compile_suite
+    from dojo.compiler.taxonomy import taxonomy_of
 
     from .policy_link import open_policy
     from .progress import Progress
@@ -125,11 +126,12 @@ def run_task(cfg: DictConfig) -> int:
     finally:
         policy.close()
     public = [r for r in rows if r.split == "public"]
-    _print_scores(score_episodes(public), run_id, store_path, quiet=cfg.progress == "jsonl",
+    taxonomy = taxonomy_of(library)
+    _print_scores(score_episodes(public, taxonomy=taxonomy), run_id, store_path, quiet=cfg.progress == "jsonl",
                   privileged=is_privileged(meta))
     if cfg.report:
         report_path = Path(cfg.report)
-        write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id})
+        write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
         print(f"report: {report_path} and {report_path.with_suffix('.html')}")
     return 0
 

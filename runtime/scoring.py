@@ -36,7 +36,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple
 
-from dojo.runtime.episode import DIMENSIONS, EpisodeResult
+from dojo.compiler.taxonomy import Taxonomy, builtin_taxonomy
+from dojo.runtime.episode import EpisodeResult
 
 STD_DDOF = 1  # sample standard deviation over seed replicates; see the module docstring
 STANDARD, RANDOM = "standard", "random"
@@ -137,8 +138,11 @@ def _metrics(pairs: Sequence[tuple[float, float]]) -> Metrics:
     return Metrics(success=stat([p[0] for p in pairs]), score=stat([p[1] for p in pairs]))
 
 
-def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scores:
-    """Score one leaderboard entry (one policy): the rows of `split`, grouped into seed replicates."""
+def score_episodes(rows: Iterable[EpisodeResult], split: str = "public", taxonomy: Taxonomy | None = None) -> Scores:
+    """Score one leaderboard entry (one policy): the rows of `split`, grouped into seed replicates, by the
+    scored dimensions of `taxonomy` (RoboDojo's when None)."""
+    taxonomy = taxonomy or builtin_taxonomy()
+    scored_dims = taxonomy.scored
     episodes = [r for r in rows if r.split == split]
     if not episodes:
         raise ScoringError(f"no {split} episodes to score")
@@ -148,19 +152,22 @@ def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scor
             raise ScoringError(
                 f"task {e.task!r} appears under two dimensions: {task_dimension[e.task]!r}, {e.dimension!r}"
             )
+        if e.dimension not in scored_dims:
+            raise ScoringError(f"task {e.task!r} has dimension {e.dimension!r}, which is not scored (scored: "
+                               f"{', '.join(scored_dims)})")
 
     # replicate -> task -> episodes
     by_rep: dict[Replicate, dict[str, list[EpisodeResult]]] = defaultdict(lambda: defaultdict(list))
     for e in episodes:
         by_rep[Replicate(e.run_id, e.eval_seed)][e.task].append(e)
     replicates = tuple(sorted(by_rep))
-    tasks = sorted(task_dimension, key=lambda t: (DIMENSIONS.index(task_dimension[t]), t))
+    tasks = sorted(task_dimension, key=lambda t: (scored_dims.index(task_dimension[t]), t))
     notes: list[str] = []
 
     task_scores: list[TaskScore] = []
     # replicate -> dimension -> list of (success, score) per task
     per_rep_dim: dict[Replicate, dict[str, list[tuple[float, float]]]] = defaultdict(lambda: defaultdict(list))
-    # replicate -> setting -> list of (success, score) per Generalization task
+    # replicate -> setting -> list of (success, score) per task of a dimension that compares settings
     per_rep_gen: dict[Replicate, dict[str, list[tuple[float, float]]]] = defaultdict(lambda: defaultdict(list))
     for task in tasks:
         dimension = task_dimension[task]
@@ -181,7 +188,7 @@ def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scor
             for setting, setting_episodes in by_setting.items():
                 setting_pair = _episode_metrics(setting_episodes)
                 setting_pairs[setting].append(setting_pair)
-                if dimension == "generalization":
+                if taxonomy.compare_settings(dimension):
                     per_rep_gen[rep][setting].append(setting_pair)
         if len(counts) > 1:
             notes.append(f"task {task} has different episode counts across seed replicates: {sorted(counts)}")
@@ -190,7 +197,7 @@ def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scor
             metrics=_metrics(pairs), settings={s: _metrics(p) for s, p in sorted(setting_pairs.items())},
         ))
 
-    present = [d for d in DIMENSIONS if d in task_dimension.values()]
+    present = [d for d in scored_dims if d in task_dimension.values()]
     dimensions: dict[str, DimensionScore] = {}
     for d in present:
         reps = [rep for rep in replicates if per_rep_dim[rep].get(d)]
@@ -209,7 +216,7 @@ def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scor
                      for d in rep_dims]
         overall_pairs.append((mean([p[0] for p in dim_means]), mean([p[1] for p in dim_means])))
 
-    missing = tuple(d for d in DIMENSIONS if d not in present)
+    missing = tuple(d for d in scored_dims if d not in present)
     return Scores(
         replicates=replicates,
         tasks=tuple(task_scores),
@@ -220,6 +227,15 @@ def score_episodes(rows: Iterable[EpisodeResult], split: str = "public") -> Scor
         generalization=_generalization_split(per_rep_gen, replicates),
         notes=tuple(notes),
     )
+
+
+def report_dimensions(report: dict[str, Any]) -> dict[str, str]:
+    """Scored dimension id -> label, in order, of a report (`build_report` writes them; RoboDojo's otherwise)."""
+    listed = report.get("dimensions")
+    if listed:
+        return {d["id"]: d["label"] for d in listed}
+    taxonomy = builtin_taxonomy()
+    return {d: taxonomy.label(d) for d in taxonomy.scored}
 
 
 def _generalization_split(

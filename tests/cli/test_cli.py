@@ -133,7 +133,8 @@ def test_compile_writes_plans_and_reuses_them(tmp_path: Path) -> None:
 def test_validate_with_no_path_checks_the_builtin_specs(tmp_path: Path) -> None:
     result = dojo("validate", cwd=tmp_path)  # anywhere: the installed package's own specs and assets
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "all valid" in result.stdout and " suite, " in result.stdout and " task)" in result.stdout
+    assert "all valid" in result.stdout and " suite, " in result.stdout and " task, " in result.stdout
+    assert " taxonomy)" in result.stdout
 
 
 def test_a_broken_task_file_is_the_error_not_the_suite_that_uses_it(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ def test_numpy_scalars_are_normalised(make_row):
 
 @pytest.mark.parametrize("field, value", [
     ("score", 140.0), ("score", float("nan")), ("score", True), ("success", 1), ("steps", 2.5), ("steps", -1),
-    ("dimension", "DLC"), ("dimension", "training"), ("split", "private"), ("task", ""), ("wall_time_s", -1.0),
+    ("dimension", "DLC"), ("dimension", "long horizon"), ("split", "private"), ("task", ""), ("wall_time_s", -1.0),
     ("stage_times", {"grasp": 1.5}), ("policy_meta", {"weights": np.zeros(2)}), ("failure_reason", 3),
 ])
 def test_bad_values_are_refused(make_row, field, value):
@@ -26,11 +26,12 @@ def test_bad_values_are_refused(make_row, field, value):
 
 def test_training_only_dimensions_are_recorded_but_never_scored(make_row, make_task_rows):
     """DLC episodes are rows (`dojo collect` resumes from them), but no score, report or progress line counts
-    them: they are outside DIMENSIONS, and scoring either refuses them or leaves them out entirely."""
-    from dojo.runtime.episode import DIMENSIONS, TRAINING_DIMENSIONS
+    them: they are not scored dimensions of the taxonomy, and scoring either refuses them or leaves them out."""
+    from dojo.compiler.taxonomy import builtin_taxonomy
     from dojo.runtime.scoring import ScoringError, score_episodes
 
-    assert TRAINING_DIMENSIONS == ("dlc",) and not set(TRAINING_DIMENSIONS) & set(DIMENSIONS)
+    taxonomy = builtin_taxonomy()
+    assert taxonomy.training_only == ("dlc",) and not set(taxonomy.training_only) & set(taxonomy.scored)
     row = make_row(task="dlc", dimension="dlc", success=np.bool_(True), score=100.0)
     assert row.dimension == "dlc" and row.success is True
 
