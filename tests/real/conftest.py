@@ -14,17 +14,19 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import pytest
 from dojo.backends.real.emulator import EmulatedRobot, EmulatorParams
-from dojo.backends.real.piper_emulator import PiperCanEmulator
 from dojo.backends.real.realtime_sim import RealTimeSim
 from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.compiler.robot_emit import build_robot_world
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.runtime.run_dir import results_root
+
+if TYPE_CHECKING:  # python-can (the `real` extra) is needed only by the tests that start an emulator
+    from dojo.backends.real.piper_emulator import PiperCanEmulator
 
 ROBOT_ID = "piper_bimanual"
 _FIGURES: dict[str, Any] = {}
@@ -92,6 +94,7 @@ def make_rig(piper_world) -> Iterator[Callable[..., Rig]]:
     started: list[Rig] = []
 
     def make(**params: Any) -> Rig:
+        pytest.importorskip("can")
         rig = Rig(EmulatedRobot(model, robot, config, EmulatorParams(**params)), config, model)
         started.append(rig)
         return rig
