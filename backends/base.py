@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -45,7 +45,8 @@ class StepResult:
     `stage_times[i]` maps each stage name to the control step it was first reached (None = not yet): the
     `EpisodeResult.stage_times` of the episode. `end_reason[i]` is one of END_REASONS once `done[i]`, else
     None; an episode's `failure_reason` is its end reason unless it succeeded. `clipped[i]` counts the action
-    elements clipped to limits in this step, `clipped_total[i]` in the whole episode.
+    elements clipped to limits in this step, `clipped_total[i]` in the whole episode. `terms[i]` maps each
+    success term (`ProgramLayout.term_names`) to whether it holds now (empty for a backend that does not say).
     """
 
     env_ids: np.ndarray
@@ -58,6 +59,7 @@ class StepResult:
     end_reason: list[str | None]
     clipped: np.ndarray
     clipped_total: np.ndarray
+    terms: list[dict[str, bool]] = field(default_factory=list)
 
 
 class Backend(ABC):

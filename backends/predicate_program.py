@@ -46,6 +46,7 @@ import mujoco
 import numpy as np
 
 from dojo.language import predicates as words
+from dojo.language.predicates.connectives import AllOf
 
 from . import predicates as P
 from .predicate_state import BODY, CONST, SITE, StateIndex, mujoco_state
@@ -282,13 +283,17 @@ def resolve_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledP
     data = plan.initial_data(model)
     comp = _Compiler(plan, model, data)
     program = plan.program
-    success = _located(comp, program["success"], ("success",))
+    conjuncts = program["success"].get("all") if isinstance(program["success"], dict) else None
+    term_preds = conjuncts if isinstance(conjuncts, list) else [program["success"]]
+    paths = [("success", "all", i) for i in range(len(term_preds))] if conjuncts else [("success",)]
+    terms = tuple(_located(comp, pred, path) for pred, path in zip(term_preds, paths))
+    success = AllOf(terms) if conjuncts else terms[0]  # the node `all` itself compiles to
     stages = tuple(_located(comp, s["when"], ("stages", i, "when")) for i, s in enumerate(program.get("stages", [])))
     layout = ProgramLayout(
         success=success, stages=stages, stage_names=tuple(s["name"] for s in program.get("stages", [])),
         weights=tuple(float(s.get("weight", 1.0)) for s in program.get("stages", [])),
         sequential=program.get("stage_order", "any") == "sequential", presses=tuple(comp.presses),
-        n_order=comp.n_order,
+        n_order=comp.n_order, terms=terms, term_names=tuple(words.render(p) for p in term_preds),
     )
     index = StateIndex(tuple(comp.frame_kind), tuple(comp.frame_id), tuple(comp.qpos_adr), comp.geom_atom(),
                        len(comp.atom_bodies))
@@ -401,7 +406,8 @@ def program_step(xp: Any, layout: ProgramLayout, state: dict[str, Array], params
     else:
         score = 100.0 * success.astype(xp.float32)
     memory = {"press_count": count, "press_down": down, "first": first, "stage_step": stage_step}
-    return memory, ProgramOutput(success=success, score=score, stage_step=stage_step)
+    terms = _columns(xp, [ev.eval(t) for t in layout.terms], xp.zeros((ev.n, 0), dtype=bool))
+    return memory, ProgramOutput(success=success, score=score, stage_step=stage_step, terms=terms)
 
 
 def stack_params(params: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -33,6 +33,9 @@ class ProgramLayout:
     sequential: bool
     presses: tuple[Press, ...]
     n_order: int
+    terms: tuple[Node, ...] = ()
+    """The success predicate's named conditions: the children of a top-level `all`, else the predicate itself."""
+    term_names: tuple[str, ...] = ()
 
 
 @dataclass
@@ -44,11 +47,13 @@ class CompiledProgram:
 
 class ProgramOutput(NamedTuple):
     """One evaluation, batched over N: success bool[N], score float[N] (0-100), stage_step int[N, S]
-    (first control step each stage was reached, -1 = not yet). A NamedTuple, hence a JAX pytree."""
+    (first control step each stage was reached, -1 = not yet), terms bool[N, T] (each success term now, so a
+    failed episode says which condition failed). A NamedTuple, hence a JAX pytree."""
 
     success: Array
     score: Array
     stage_step: Array
+    terms: Array
 
 
 class ProgramError(ValueError):

@@ -28,22 +28,6 @@ def _words_in(pred: Any) -> Iterator[str]:
             yield from _words_in(item)
 
 
-def render_predicate(pred: Any) -> str:
-    """`{on: [a, b]}` as `on(a, b)`, children rendered in place, keyword arguments as `key=value`."""
-    if isinstance(pred, dict) and len(pred) == 1 and predicate_words.word(next(iter(pred))) is not None:
-        (name, arg), = pred.items()
-        return f"{name}({_render_arg(arg)})"
-    return _render_arg(pred)
-
-
-def _render_arg(arg: Any) -> str:
-    if isinstance(arg, list):
-        return ", ".join(render_predicate(a) for a in arg)
-    if isinstance(arg, dict):
-        return ", ".join(f"{k}={render_predicate(v)}" for k, v in arg.items())
-    return str(arg)
-
-
 def _object_line(entry: dict[str, Any]) -> str:
     asset = entry["asset"]
     asset_text = asset if isinstance(asset, str) else "any asset with " + ", ".join(f"{k} {v}" for k, v in
@@ -81,14 +65,14 @@ def task_card(task: Spec, instruction: str | None = None, images: dict[str, str]
     settings = data.get("settings") or {}
     lines += [f"- **{name}**: " + (", ".join(f"{k} {v}" for k, v in cfg.items()) or "defaults")
               for name, cfg in settings.items()] or ["- `standard` and `random` with the defaults"]
-    lines += ["", "## Success and score", "", f"Success: `{render_predicate(data['success'])}`, and every stage "
+    lines += ["", "## Success and score", "", f"Success: `{predicate_words.render(data['success'])}`, and every stage "
               "reached.", ""]
     stages = data.get("stages", [])
     if stages:
         order = data.get("stage_order", "any")
         lines += [f"Stages ({'in order' if order == 'sequential' else 'in any order'}; score = weighted fraction "
                   "reached):", "", "| stage | when | weight |", "|---|---|---|"]
-        lines += [f"| {s['name']} | `{render_predicate(s['when'])}` | {s.get('weight', 1)} |" for s in stages]
+        lines += [f"| {s['name']} | `{predicate_words.render(s['when'])}` | {s.get('weight', 1)} |" for s in stages]
         lines.append("")
     used = sorted(set(_words_in([data["success"], *[s["when"] for s in stages]])))
     lines += ["Words used:", ""]

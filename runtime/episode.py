@@ -55,6 +55,9 @@ class EpisodeResult:
     stage_times: dict[str, int | None] = field(default_factory=dict)
     failure_reason: str | None = None
     video_path: str | None = None
+    success_terms: dict[str, bool] = field(default_factory=dict)
+    """Each condition of the task's success predicate at the episode's end (which one failed), when the backend
+    says (the `mujoco` backend does)."""
 
     def __post_init__(self) -> None:
         """Validate, and normalise numpy scalars (backends produce them) to plain Python values, so that what is
@@ -90,6 +93,9 @@ class EpisodeResult:
         for name in ("failure_reason", "video_path"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), str):
                 raise ValueError(f"EpisodeResult.{name} must be a string or None")
+        if not all(isinstance(k, str) and isinstance(v, (bool, np.bool_)) for k, v in self.success_terms.items()):
+            raise ValueError("EpisodeResult.success_terms must map condition names to bools")
+        self._set("success_terms", {k: bool(v) for k, v in self.success_terms.items()})
 
     def _set(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)  # the dataclass is frozen; this runs only during construction

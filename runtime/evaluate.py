@@ -11,6 +11,11 @@ Resume: a run's id is derived from what it evaluates (suite, policy identity, ba
 so re-running the same command finds the same run in the store and skips every episode already recorded. An
 interrupted run loses at most the episodes that were still in flight; those are re-run from their start.
 
+Launchers: the loop does not care where its episodes come from or where its rows go. `store` is anything with
+`finished()` and `add_many()` and `progress` anything with `episode_finished()` and `interactions()`, and with
+`more` the loop pulls further episodes as its slots free up, so that a Ray worker (`launch_ray`) runs this same
+loop on episodes it pulls from the driver and streams its rows back, instead of a copy of it.
+
 Recording (optional): with a `recorder_factory`, every slot gets a recorder that sees each observation and the
 action taken from it, and whose video path goes into the episode's row. The backend may then render cameras the
 policy did not ask for; the policy is shown only its own (`metadata.cameras`).
@@ -22,9 +27,10 @@ import hashlib
 import json
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -32,11 +38,9 @@ from dojo.backends.base import Backend
 from xpolicylab.errors import ErrorCode, ProtocolError
 from dojo.compiler.plan import Plan
 
-from .episode import EpisodeResult
+from .episode import EpisodeKey, EpisodeResult
 from .policy_link import PolicyLink
-from .progress import Progress
 from .recorder import SlotRecorder
-from .results_store import ResultsStore
 
 TIMEOUT = "timeout"
 POLICY_ERROR = "policy_error"
@@ -66,6 +70,25 @@ class _Slot:
     score: float = 0.0  # progress so far, for an episode that ends between steps (a policy error)
     steps: int = 0
     stage_times: dict[str, int | None] = field(default_factory=dict)
+    terms: dict[str, bool] = field(default_factory=dict)
+
+
+class RowSink(Protocol):
+    """Where finished episodes go: the results store, or a worker's link to the driver that writes them."""
+
+    def finished(self, run_id: str) -> set[EpisodeKey]:
+        """Keys of the episodes already recorded (skipped)."""
+
+    def add_many(self, results: Sequence[EpisodeResult]) -> int:
+        """Record episodes that ended together; return how many were new."""
+
+
+class ProgressSink(Protocol):
+    """What the loop reports as it goes: a `Progress`, or a worker's counter sent to the driver's."""
+
+    def episode_finished(self, row: EpisodeResult) -> None: ...
+
+    def interactions(self, n: int) -> None: ...
 
 
 def run_id_for(identity: dict[str, Any]) -> str:
@@ -75,12 +98,19 @@ def run_id_for(identity: dict[str, Any]) -> str:
 
 
 def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
-             store: ResultsStore, run_id: str, *, num_envs: int, progress: Progress,
+             store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
              episode_timeout_s: float | None = None,
-             recorder_factory: Callable[[], SlotRecorder] | None = None) -> int:
-    """Run every queued episode not yet in the store for `run_id`; return how many were run now."""
+             recorder_factory: Callable[[], SlotRecorder] | None = None,
+             more: Callable[[int], list[QueuedEpisode]] | None = None) -> int:
+    """Run every queued episode not yet in the store for `run_id`; return how many were run now.
+
+    `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
+    ([] when there are none now): episodes are taken only when a slot can start them, so a worker of a launcher
+    never holds episodes that another, idle worker could be running."""
     finished = store.finished(run_id)
     todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
+    if more is not None and len(todo) < num_envs:
+        todo.extend(more(num_envs - len(todo)))
     if not todo:
         return 0
     meta = policy.metadata
@@ -112,6 +142,8 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
             progress.episode_finished(row)
         ran += len(rows)
         ids = [i for i, _, _ in ended]
+        if more is not None and len(todo) < len(ids):
+            todo.extend(more(len(ids) - len(todo)))
         refill = ids[:len(todo)]
         for i in ids[len(refill):]:
             del slots[i]
@@ -162,6 +194,7 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
                 slot = slots[i]
                 slot.score, slot.steps, slot.stage_times = float(result.score[k]), int(result.steps[k]), \
                     dict(result.stage_times[k])
+                slot.terms = dict(result.terms[k]) if result.terms else {}
                 timed_out = episode_timeout_s is not None and now - slot.started > episode_timeout_s
                 if result.done[k] or timed_out:
                     success = bool(result.success[k])
@@ -199,4 +232,4 @@ def _row(run_id: str, slot: _Slot, success: bool, reason: str | None, policy_nam
         setting=item.setting, eval_seed=item.eval_seed, episode=item.episode, scene_seed=item.scene_seed,
         policy_name=policy_name, policy_meta=policy_meta, success=success, score=slot.score, steps=slot.steps,
         wall_time_s=now - slot.started, stage_times=slot.stage_times, failure_reason=reason,
-        video_path=video_path)
+        video_path=video_path, success_terms=slot.terms)

@@ -90,6 +90,7 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
             "plan_hashes": _plan_hashes(public),
             "score_histograms": _histograms(public, taxonomy),
             "failure_reasons": _failure_reasons(public),
+            "unmet_conditions": _unmet_terms(public),
             "videos": [
                 {"task": r.task, "setting": r.setting, "run_id": r.run_id, "eval_seed": r.eval_seed,
                  "episode": r.episode, "success": r.success, "score": r.score, "path": r.video_path}
@@ -175,6 +176,15 @@ def _failure_reasons(rows: Sequence[EpisodeResult]) -> dict[str, dict[str, int]]
         if not r.success:
             reasons[r.task][r.failure_reason or "unspecified"] += 1
     return {t: dict(c.most_common()) for t, c in sorted(reasons.items())}
+
+
+def _unmet_terms(rows: Sequence[EpisodeResult]) -> dict[str, dict[str, int]]:
+    """Per task, how many failed episodes ended with each success condition unmet (where the backend said)."""
+    unmet: dict[str, Counter[str]] = defaultdict(Counter)
+    for r in rows:
+        if not r.success:
+            unmet[r.task].update(term for term, holds in r.success_terms.items() if not holds)
+    return {t: dict(c.most_common()) for t, c in sorted(unmet.items()) if c}
 
 
 def write_report(

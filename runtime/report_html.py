@@ -209,11 +209,14 @@ def _task_table(entry: dict[str, Any], dims: dict[str, str]) -> str:
             split = f'{settings["standard"]["score"]["mean"]:.2f} / {settings["random"]["score"]["mean"]:.2f}'
         reasons = list(entry["failure_reasons"].get(task["task"], {}).items())[:3]
         top = "; ".join(f"{_e(reason)} ×{count}" for reason, count in reasons) or "—"
+        unmet = list(entry.get("unmet_conditions", {}).get(task["task"], {}).items())[:3]
+        conditions = "; ".join(f"<code>{_e(term)}</code> ×{count}" for term, count in unmet) or "—"
         rows.append([_e(task["task"]), _e(dims.get(task["dimension"], task["dimension"])), str(task["episodes"]),
                      _fmt_stat(task["metrics"]["score"], False), _fmt_stat(task["metrics"]["success"], True), split,
-                     f'<span class="small">{top}</span>'])
-    headers = ["Task", "Dimension", "Episodes", "Score", "Success", "Standard / random score", "Top failure reasons"]
-    return "<h3>Tasks</h3>" + _table(headers, rows, "llnnnnl")
+                     f'<span class="small">{top}</span>', f'<span class="small">{conditions}</span>'])
+    headers = ["Task", "Dimension", "Episodes", "Score", "Success", "Standard / random score", "Top failure reasons",
+               "Success conditions unmet"]
+    return "<h3>Tasks</h3>" + _table(headers, rows, "llnnnnll")
 
 
 def _videos_block(entry: dict[str, Any], html_dir: Path | None) -> str:

@@ -21,15 +21,21 @@ from typing import Any
 
 from dojo.runtime.episode import EpisodeKey, EpisodeResult
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# What turns a store of each older version into the next one. Writers migrate when they open a store, readers
+# read an older store as it is (`_LEGACY_COLUMNS`): a report over last month's runs needs no write access.
+_MIGRATIONS: dict[int, str] = {
+    1: "ALTER TABLE episodes ADD COLUMN success_terms TEXT NOT NULL DEFAULT '{}'",  # 2: which condition failed
+}
+_LEGACY_COLUMNS: dict[int, dict[str, str]] = {1: {"success_terms": "'{}'"}}
 STORE_FILENAME = "results.sqlite"  # the store's name inside a run folder
 
 _COLUMNS: tuple[str, ...] = (
     "run_id", "split", "plan_hash", "task", "dimension", "setting", "eval_seed", "episode", "scene_seed",
     "policy_name", "policy_meta", "success", "score", "stage_times", "steps", "wall_time_s", "failure_reason",
-    "video_path",
+    "video_path", "success_terms",
 )
-_JSON_COLUMNS = frozenset({"policy_meta", "stage_times"})
+_JSON_COLUMNS = frozenset({"policy_meta", "stage_times", "success_terms"})
 _SUCCESS = _COLUMNS.index("success")
 _INSERT = (f"INSERT INTO episodes ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))}) "
            "ON CONFLICT (run_id, plan_hash, eval_seed, episode) DO NOTHING")
@@ -60,6 +66,7 @@ CREATE TABLE IF NOT EXISTS episodes (
     wall_time_s REAL NOT NULL,
     failure_reason TEXT,
     video_path TEXT,
+    success_terms TEXT NOT NULL DEFAULT '{{}}',
     finished_at TEXT NOT NULL DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ', 'now')),
     PRIMARY KEY (run_id, plan_hash, eval_seed, episode)
 );
@@ -136,9 +143,17 @@ class ResultsStore:
             row = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.OperationalError as exc:
             raise StoreError(f"{str(self.path)!r} is an SQLite file but not a RoboDojo results store") from exc
-        if row is None or int(row[0]) != SCHEMA_VERSION:
-            found = None if row is None else row[0]
-            raise StoreError(f"{str(self.path)!r} has results schema {found}, this version reads {SCHEMA_VERSION}")
+        version = None if row is None else int(row[0])
+        while version in _MIGRATIONS and not self.readonly:
+            with self._transaction():  # read again under the write lock: another writer may have migrated
+                version = int(self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0])
+                if version in _MIGRATIONS:
+                    self._db.execute(_MIGRATIONS[version])
+                    self._db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(version + 1),))
+                    version += 1
+        if version != SCHEMA_VERSION and version not in _LEGACY_COLUMNS:
+            raise StoreError(f"{str(self.path)!r} has results schema {version}, this version reads {SCHEMA_VERSION}")
+        self._select = ", ".join(_LEGACY_COLUMNS.get(version, {}).get(c, c) for c in _COLUMNS)
 
     # -- runs ---------------------------------------------------------------------------------------------
 
@@ -209,7 +224,7 @@ class ResultsStore:
         """Stored episodes (of one run, or all), in a stable order independent of when they finished."""
         where, params = ("WHERE run_id = ?", (run_id,)) if run_id is not None else ("", ())
         cur = self._db.execute(
-            f"SELECT {', '.join(_COLUMNS)} FROM episodes {where} "
+            f"SELECT {self._select} FROM episodes {where} "
             "ORDER BY run_id, split, task, eval_seed, episode, plan_hash",
             params,
         )

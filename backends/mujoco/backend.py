@@ -70,6 +70,7 @@ class _Slot:
     success: bool = False
     score: float = 0.0
     stage_step: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    terms: dict[str, bool] = field(default_factory=dict)
     clipped_total: int = 0
 
 
@@ -152,6 +153,7 @@ class MujocoBackend(Backend):
         slot.memory = init_memory(np, slot.compiled.program.layout, 1)
         slot.step, slot.done, slot.end_reason, slot.success, slot.score, slot.clipped_total = 0, False, None, False, 0.0, 0
         slot.stage_step = np.full(len(slot.compiled.program.layout.stages), -1, np.int32)
+        slot.terms = {}
 
     def reset(self, env_ids: Sequence[int] | None = None, plans: Sequence[Any] | None = None) -> list[Observation]:
         ids = resolve_ids(env_ids, self.num_envs)
@@ -264,6 +266,7 @@ class MujocoBackend(Backend):
                 slot.memory = {name: value[k:k + 1] for name, value in memory.items()}
                 slot.success, slot.score = bool(out.success[k]), float(out.score[k])
                 slot.stage_step = out.stage_step[k]
+                slot.terms = dict(zip(layout.term_names, map(bool, out.terms[k])))
                 if slot.success:
                     slot.done, slot.end_reason = True, END_SUCCESS
                 elif slot.step >= slot.plan.horizon:
@@ -312,6 +315,7 @@ class MujocoBackend(Backend):
             end_reason=[s.end_reason for s in slots],
             clipped=np.asarray(clipped, dtype=np.int32),
             clipped_total=np.asarray([s.clipped_total for s in slots], dtype=np.int32),
+            terms=[dict(s.terms) for s in slots],
         )
 
     def close(self) -> None:

@@ -128,6 +128,23 @@ def _walk(schema: dict, value: Any, path: tuple, quantified: bool) -> Iterator[t
                 yield from _walk(sub, value[key], path + (key,), quantified)
 
 
+def render(pred: Any) -> str:
+    """A predicate as text, `{on: [a, b]}` as `on(a, b)`: children in place, keyword arguments as `key=value`.
+    Names an episode's success terms and writes task cards."""
+    if isinstance(pred, dict) and len(pred) == 1 and next(iter(pred)) in _WORDS.entries():
+        (name, arg), = pred.items()
+        return f"{name}({_render_arg(arg)})"
+    return _render_arg(pred)
+
+
+def _render_arg(arg: Any) -> str:
+    if isinstance(arg, list):
+        return ", ".join(render(a) for a in arg)
+    if isinstance(arg, dict):
+        return ", ".join(f"{k}={render(v)}" for k, v in arg.items())
+    return str(arg)
+
+
 def objref_list(description: str, min_items: int, max_items: int | None = None) -> dict[str, Any]:
     """Schema of an argument that is a list of object references."""
     schema: dict[str, Any] = {"description": description, "type": "array", "items": {"$ref": OBJREF},

@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from dojo.compiler.spec_library import SpecLibrary
-from dojo.compiler.task_card import render_predicate, task_card
+from dojo.compiler.task_card import task_card
+from dojo.language.predicates import render
 
 PACK = Path(__file__).parents[1] / "specs" / "pack"
 
@@ -13,7 +14,7 @@ PACK = Path(__file__).parents[1] / "specs" / "pack"
 def test_predicates_render_as_calls_with_children_in_place():
     pred = {"all": [{"forall": {"group": "cubes", "holds": {"inside": ["_", "bin"]}}}, {"pressed": ["button", 2]},
                     {"aligned": {"object": "t", "target": "goal", "pos_tol": 0.01}}]}
-    assert render_predicate(pred) == ("all(forall(group=cubes, holds=inside(_, bin)), pressed(button, 2), "
+    assert render(pred) == ("all(forall(group=cubes, holds=inside(_, bin)), pressed(button, 2), "
                                       "aligned(object=t, target=goal, pos_tol=0.01))")
 
 
