@@ -303,9 +303,12 @@ def measure_cpu_render(plans: Sequence[Any], grid: Sequence[tuple[int, int, bool
     from dojo.backends.mujoco.backend import MujocoBackend
     from dojo.backends.mujoco.render import ensure_headless_gl
 
+    from .gl_platform import gl_enabled, gl_unavailable_reason
     from .mjx.render import CAMERAS, CpuRenderer, RenderConfig
 
     ensure_headless_gl()
+    if not gl_enabled():  # a GPU server without an EGL loader: the batched figures stand, the baseline is named
+        return {"renderer": "mujoco (no OpenGL)", "skipped": gl_unavailable_reason()}
     rows = []
     chosen = [plans[k % len(plans)] for k in range(envs)]
     for width, height, depth in grid:

@@ -138,9 +138,9 @@ def _usage() -> str:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `dojo` console script."""
     # MuJoCo picks its GL platform when first imported, and any subcommand may import it: choose the headless
-    # one now (the same default as dojo.backends.mujoco.render.ensure_headless_gl), unless the user chose.
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    # one now (EGL, else OSMesa, else none: a GPU server without libEGL still imports mujoco), unless the user chose.
+    from dojo.backends.gl_platform import choose_gl_platform
+    choose_gl_platform()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())

@@ -1,23 +1,23 @@
 """Offscreen rendering with MuJoCo's own renderer, headless.
 
-MuJoCo picks its OpenGL platform from MUJOCO_GL when it is first imported; `ensure_headless_gl` sets EGL (which
-needs no display and, without a GPU, runs on Mesa's software driver) unless the user chose another, and must run
-before `mujoco` is imported by anything that will render.
+MuJoCo picks its OpenGL platform from MUJOCO_GL when it is first imported; `ensure_headless_gl` chooses one
+(`dojo.backends.gl_platform`: EGL, which needs no display and without a GPU runs on Mesa's software driver, else
+OSMesa, else none) unless the user chose, and must run before `mujoco` is imported by anything that will render.
 """
 
 from __future__ import annotations
 
-import os
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
+from ..gl_platform import choose_gl_platform, gl_enabled, gl_unavailable_reason
+
 
 def ensure_headless_gl() -> None:
-    """Choose a headless GL platform for MuJoCo unless one is already chosen."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    """Choose a headless GL platform for MuJoCo unless one is already chosen (none where no library loads)."""
+    choose_gl_platform()
 
 
 SHADOW_MAP_SIZE = 2048
@@ -26,9 +26,14 @@ machine's CPU (Mesa); 2048 halves the frame time and changed a 640x480 head imag
 
 
 def open_renderer(model: "mujoco.MjModel", height: int, width: int) -> "mujoco.Renderer":
-    """A MuJoCo renderer with our shadow map size (a drawing setting only: `vis` never affects the physics)."""
+    """A MuJoCo renderer with our shadow map size (a drawing setting only: `vis` never affects the physics).
+
+    Where no OpenGL platform is available (MUJOCO_GL disabled), the error says so and what to install, instead of
+    MuJoCo's `module 'mujoco.gl_context' has no attribute 'GLContext'`."""
     import mujoco
 
+    if not gl_enabled():
+        raise RuntimeError(gl_unavailable_reason())
     model.vis.quality.shadowsize = min(int(model.vis.quality.shadowsize), SHADOW_MAP_SIZE)
     return mujoco.Renderer(model, height=height, width=width)
 
