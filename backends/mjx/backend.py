@@ -14,11 +14,13 @@ Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no e
 physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
 and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
 backend's `RobotIndex.proprioception`. Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
-environment, so this backend runs `impl='jax'`; the `warp` implementation serves `Engine` (physics, bench).
+environment, so this backend runs `impl='jax'` (`auto` too, with a logged reason, also on an NVIDIA GPU); the `warp`
+implementation serves `Engine` and `StreamEngine` (physics, bench).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -37,8 +39,26 @@ from ..predicate_state import BODY, SITE, StateIndex, gather_state
 from ..rotations import mat_to_quat
 from .batch import BucketArrays, Engine, Hooks, Tree
 from .bucket import Bucket, make_buckets
-from .cache import choose_impl, enable_compilation_cache
+from .cache import choose_impl, describe_impl, enable_compilation_cache
 from .render import CpuRenderer, RenderConfig, observation_images
+
+log = logging.getLogger(__name__)
+WARP_PENDING = ("predicates read per-environment contacts, which MJX's warp implementation keeps in one pool for "
+                "the whole batch")
+"""Why the backend does not run `impl='warp'` yet (issue 22): the physics bench does."""
+
+
+def backend_impl(requested: str | None) -> str:
+    """The implementation the backend runs: `jax`, also for `auto` on an NVIDIA GPU (logged with the reason);
+    an explicit `warp` is refused with it. `dojo bench sim` measures the warp implementation's physics."""
+    if requested in (None, "", "auto"):
+        if choose_impl("auto") == "warp":
+            log.warning("mjx backend: impl=auto runs 'jax', not 'warp': %s", WARP_PENDING)
+        return "jax"
+    if choose_impl(requested) != "jax":
+        raise ValueError(f"the mjx backend cannot run impl='warp' yet: {WARP_PENDING}; use impl=jax or auto")
+    return "jax"
+
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
 DELTA_JOINT, EE, DELTA_EE = (MODES.index(m) for m in ("delta_joint", "ee", "delta_ee"))  # ids the tick compares
@@ -209,9 +229,8 @@ class MjxBackend(Backend):
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
         self._renderers: list[CpuRenderer] = []
-        self.impl = choose_impl(impl)
-        if self.impl != "jax":
-            raise ValueError("the mjx backend evaluates predicates on per-environment contacts: use impl='jax'")
+        self.impl = backend_impl(impl)
+        log.info("mjx backend: %s", describe_impl(self.impl))
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
         self._engine: Engine | None = None

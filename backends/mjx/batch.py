@@ -27,6 +27,7 @@ from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from mujoco import mjx
 
@@ -38,17 +39,54 @@ Tree = Any
 _STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
 
 
-def contact_capacity(bucket: Bucket) -> tuple[int, int]:
-    """(contacts, constraint rows) to allocate per world for the warp implementation.
+REST_MARGIN = 2
+"""Contacts and constraint rows allocated per world are at least this many times what the bucket's plans have at
+rest (their initial states, `mj_forward` on the CPU): grasps, pushes and stacks add contacts to a resting layout."""
+OVERFLOW_FLAGS = {1 << 0: "constraint rows (njmax)", 1 << 1: "constraint Jacobian non-zeros (njmax_nnz)",
+                  1 << 2: "broadphase pairs (naconmax)", 1 << 3: "contacts (naconmax)",
+                  1 << 4: "CCD contacts (naccdmax)", 1 << 5: "height-field contacts",
+                  1 << 6: "contact-match sensor", 1 << 7: "awake dofs (nvmax)", 1 << 8: "EPA horizon",
+                  1 << 11: "tactile sensor pairs"}
+"""MuJoCo Warp's `OverflowType` bits (mujoco_warp 4.0 `types.OverflowType`) that mean a buffer was too small and
+contacts or constraint rows were dropped. The solver's iteration-limit bits (1 << 9, 1 << 10) are left out: they
+report convergence, not lost physics. Warp ORs these bits into `Data.overflow` per world and never clears them."""
 
-    Warp preallocates contact and constraint buffers; too few drops contacts silently, too many costs memory.
-    Grasps and stacked objects touch with a few points per colliding geom, so the contact budget scales with the
-    free geoms; an elliptic cone contact takes up to 6 rows (condim 6), plus rows for limits and equalities.
+
+class CapacityOverflow(RuntimeError):
+    """A Warp buffer was too small: contacts or constraint rows were dropped, so the physics is not the plan's."""
+
+
+def contact_capacity(bucket: Bucket) -> tuple[int, int]:
+    """(contacts, constraint rows) to allocate per world for the warp implementation, sized from the plans.
+
+    Warp preallocates contact and constraint buffers; too few drops contacts (detected: `Engine.check_overflow`),
+    too many costs memory. Grasps and stacked objects touch with a few points per colliding geom, so the contact
+    budget scales with the colliding geoms; an elliptic cone contact takes up to 6 rows (condim 6), plus rows for
+    limits and equalities. Both are raised to REST_MARGIN times the most any member has at rest.
     """
     m = bucket.model
     colliding = int(np.sum((m.geom_contype != 0) | (m.geom_conaffinity != 0)))
-    contacts = max(64, 4 * colliding)
-    return contacts, 6 * contacts + 2 * m.njnt + 4 * m.neq
+    rest_contacts, rest_rows = rest_constraints(bucket)
+    contacts = max(64, 4 * colliding, REST_MARGIN * rest_contacts)
+    return contacts, max(6 * contacts + 2 * m.njnt + 4 * m.neq, REST_MARGIN * rest_rows)
+
+
+def rest_constraints(bucket: Bucket) -> tuple[int, int]:
+    """The most contacts and constraint rows any member of the bucket has in its initial state (CPU MuJoCo)."""
+    contacts = rows = 0
+    for member in bucket.members:
+        data = mujoco.MjData(member.model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
+        mujoco.mj_forward(member.model, data)
+        contacts, rows = max(contacts, int(data.ncon)), max(rows, int(data.nefc))
+    return contacts, rows
+
+
+def decode_overflow(bits: Any) -> dict[str, int]:
+    """{what overflowed: how many worlds} from per-world Warp overflow bitmasks (only buffer-size flags)."""
+    bits = np.asarray(bits).reshape(-1).astype(np.int64)
+    return {name: int(np.count_nonzero(bits & flag)) for flag, name in OVERFLOW_FLAGS.items()
+            if np.any(bits & flag)}
 
 
 @dataclass
@@ -66,8 +104,11 @@ def _prepare(bucket: Bucket, size: int, impl: str) -> BucketArrays:
     mx = mjx.put_model(bucket.model, impl=impl)
     table = {}
     for name, rows in bucket.table().items():
-        dtype = getattr(mx, name).dtype if hasattr(mx, name) else jnp.float32
-        table[name] = jnp.asarray(rows, dtype=dtype)
+        if hasattr(mx, name):  # the implementation's layout: warp keeps e.g. geom_aabb as [ngeom, 2, 3], not [ngeom, 6]
+            field = getattr(mx, name)
+            table[name] = jnp.asarray(rows.reshape((len(rows),) + field.shape), dtype=field.dtype)
+        else:
+            table[name] = jnp.asarray(rows, dtype=jnp.float32)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({name: 0 for name in bucket.varying})
     return BucketArrays(bucket, size, mx, table, in_axes)
 
@@ -204,6 +245,33 @@ class Engine:
         self.data = tuple(o[0] for o in out)
         self.extra = tuple(o[1] for o in out)
         return tuple(o[2] for o in out)
+
+    def overflows(self) -> dict[str, dict[str, int]]:
+        """{bucket key: {what overflowed: worlds}} since the engine was built (warp only; reads the device).
+
+        Warp keeps contacts and constraint rows in preallocated buffers and drops what does not fit; it sets a
+        sticky per-world bit when it does, which this reads. The `jax` implementation allocates every candidate
+        contact statically and cannot overflow.
+        """
+        found = {}
+        for arr, data in zip(self.arrays, self.data):
+            bits = getattr(getattr(data, "_impl", None), "overflow", None)
+            flags = decode_overflow(jax.device_get(bits)) if bits is not None else {}
+            if flags:
+                found[arr.bucket.key] = flags
+        return found
+
+    def check_overflow(self) -> None:
+        """Raise `CapacityOverflow` naming each bucket, buffer and world count if any Warp buffer overflowed."""
+        found = self.overflows()
+        if found:
+            capacity = {a.bucket.key: contact_capacity(a.bucket) for a in self.arrays if a.bucket.key in found}
+            lines = [f"{key}: {', '.join(f'{what} in {n} world(s)' for what, n in flags.items())} (allocated "
+                     f"{capacity[key][0]} contacts and {capacity[key][1]} constraint rows per world)"
+                     for key, flags in found.items()]
+            raise CapacityOverflow("MuJoCo Warp dropped contacts or constraints, so these results are not the "
+                                   "plans' physics: " + "; ".join(lines) + ". Raise REST_MARGIN in "
+                                   "dojo/backends/mjx/batch.py or report the scene.")
 
     def compilations(self) -> int:
         """How many programs the tick has compiled (1 in a healthy run, whatever the refills)."""

@@ -37,11 +37,33 @@ def warp_available() -> bool:
 
 
 def choose_impl(requested: str | None = None) -> str:
-    """`requested` if given (checked), else `warp` on an NVIDIA GPU with MuJoCo Warp installed, else `jax`."""
+    """`requested` if given (checked), else `warp` on an NVIDIA GPU with MuJoCo Warp installed, else `jax`.
+
+    Choosing `warp` also quiets Warp's per-module "load on device ... took" lines, which it prints to stdout by
+    default: `dojo bench` prints exactly one JSON line there (our own log says how long compilation took).
+    """
     if requested in (None, "", "auto"):
-        return "warp" if warp_available() else "jax"
-    if requested not in IMPLS:
+        chosen = "warp" if warp_available() else "jax"
+    elif requested not in IMPLS:
         raise ValueError(f"unknown MJX impl {requested!r}; choose one of {IMPLS} or 'auto'")
-    if requested == "warp" and not warp_available():
+    elif requested == "warp" and not warp_available():
         raise RuntimeError("impl 'warp' needs an NVIDIA GPU visible to JAX and the mujoco-warp package")
-    return requested
+    else:
+        chosen = requested
+    if chosen == "warp":
+        quiet_warp()
+    return chosen
+
+
+def quiet_warp() -> None:
+    """Warp logs at WARNING and above only (its INFO lines go to stdout)."""
+    import warp as wp
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
+def describe_impl(impl: str) -> str:
+    """One line naming the implementation and the device it runs on, for logs and reports."""
+    device = jax.devices()[0]
+    engine = "MuJoCo Warp kernels" if impl == "warp" else "XLA"
+    return f"impl={impl} ({engine} on {device.platform} {device.device_kind})"

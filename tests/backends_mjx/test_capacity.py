@@ -1,0 +1,81 @@
+"""Warp's contact and constraint buffers: sized from the plans, overflow detected and reported, never silent;
+the backend's choice of implementation. CPU only (MuJoCo Warp's side is in test_warp_gpu.py, `-m gpu`)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import mujoco
+import numpy as np
+import pytest
+from conftest import toy_plan
+
+from dojo.backends.mjx import batch
+from dojo.backends.mjx.batch import (OVERFLOW_FLAGS, REST_MARGIN, CapacityOverflow, Engine, contact_capacity,
+                                     decode_overflow, rest_constraints)
+from dojo.backends.mjx.bucket import make_buckets
+
+
+@pytest.fixture(scope="module")
+def crowded():
+    """A bucket whose resting layout already has many contacts: ten balls on the floor."""
+    plans = [toy_plan(setting="random", seed=0, clutter=("ball",) * 10)]
+    return make_buckets(plans)[0]
+
+
+def test_capacity_covers_the_resting_contacts_with_margin(crowded):
+    data = mujoco.MjData(crowded.model)
+    data.qpos[:] = crowded.members[0].qpos
+    mujoco.mj_forward(crowded.model, data)
+    assert rest_constraints(crowded) == (data.ncon, data.nefc) and data.ncon >= 10
+    contacts, rows = contact_capacity(crowded)
+    assert contacts >= REST_MARGIN * data.ncon and rows >= REST_MARGIN * data.nefc
+    assert rows >= 6 * contacts  # every contact can take its rows (elliptic cones, condim up to 6)
+
+
+def test_capacity_is_raised_by_what_the_plans_have_at_rest(crowded, monkeypatch):
+    monkeypatch.setattr(batch, "rest_constraints", lambda bucket: (1000, 9000))
+    contacts, rows = contact_capacity(crowded)
+    assert contacts == REST_MARGIN * 1000 and rows >= REST_MARGIN * 9000
+
+
+def test_decode_overflow_counts_worlds_per_buffer_and_ignores_solver_iterations():
+    bits = np.asarray([0, 1 << 3, (1 << 3) | (1 << 0), 1 << 9, 1 << 10])
+    assert decode_overflow(bits) == {"contacts (naconmax)": 2, "constraint rows (njmax)": 1}
+    assert decode_overflow(np.zeros(4, np.int32)) == {}
+    assert (1 << 9) not in OVERFLOW_FLAGS and (1 << 10) not in OVERFLOW_FLAGS
+
+
+def _engine_with_overflow(bucket, bits):
+    """An engine whose (warp) data carries the given per-world overflow bits; nothing is compiled."""
+    engine = Engine.__new__(Engine)
+    engine.arrays = [SimpleNamespace(bucket=bucket)]
+    engine.data = (SimpleNamespace(_impl=SimpleNamespace(overflow=np.asarray(bits, np.int32))),)
+    return engine
+
+
+def test_engine_reports_overflow_by_bucket_and_raises_with_the_capacity(crowded):
+    clean = _engine_with_overflow(crowded, [0, 0, 1 << 9])
+    assert clean.overflows() == {}
+    clean.check_overflow()
+    bad = _engine_with_overflow(crowded, [0, 1 << 3, 1 << 3, 1 << 2])
+    assert bad.overflows() == {crowded.key: {"broadphase pairs (naconmax)": 1, "contacts (naconmax)": 2}}
+    contacts, rows = contact_capacity(crowded)
+    with pytest.raises(CapacityOverflow, match=rf"contacts \(naconmax\) in 2 world\(s\).*{contacts} contacts"):
+        bad.check_overflow()
+
+
+def test_jax_data_has_no_overflow_to_report(crowded):
+    """impl='jax' allocates every candidate contact: its data has no overflow field, and nothing is reported."""
+    engine = Engine.__new__(Engine)
+    engine.arrays = [SimpleNamespace(bucket=crowded)]
+    engine.data = (SimpleNamespace(_impl=SimpleNamespace()),)
+    assert engine.overflows() == {}
+
+
+def test_backend_runs_jax_for_auto_and_refuses_warp_with_the_reason():
+    from dojo.backends.mjx.backend import backend_impl
+
+    assert backend_impl("auto") == "jax" and backend_impl(None) == "jax" and backend_impl("jax") == "jax"
+    with pytest.raises((ValueError, RuntimeError), match="warp"):
+        backend_impl("warp")
