@@ -35,7 +35,8 @@ if TYPE_CHECKING:
     from .mjx.bucket import Bucket
 
 SWING = 0.1
-MJX_MODES = ("heterogeneous", "homogeneous", "cpu")
+MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams")
+"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp: asked for by name."""
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
 log = logging.getLogger(__name__)
@@ -115,6 +116,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
     jax.block_until_ready(engine.data)
     elapsed = time.perf_counter() - start
+    engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
     return {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
@@ -140,7 +142,7 @@ def _modes(backend: str, modes: Sequence[str] | None) -> tuple[str, ...]:
     """The modes to measure: the CPU alone for backend=mujoco, else the given subset of MJX_MODES (all three)."""
     if backend not in ("mjx", "mujoco"):
         raise ValueError(f"bench sim measures backend mjx or mujoco; got backend {backend!r}")
-    chosen = tuple(modes or (("cpu",) if backend == "mujoco" else MJX_MODES))
+    chosen = tuple(modes or (("cpu",) if backend == "mujoco" else MJX_MODES[:3]))
     unknown = [m for m in chosen if m not in MJX_MODES]
     if unknown:
         raise ValueError(f"unknown bench sim mode(s) {unknown}; choose among {list(MJX_MODES)}")
@@ -199,10 +201,13 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     import jax
 
     from .mjx.bucket import make_buckets
-    from .mjx.cache import choose_impl, enable_compilation_cache
+    from .mjx.cache import choose_impl, describe_impl, enable_compilation_cache
 
+    if "streams" in modes:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
+    log.info("mjx: %s", describe_impl(impl))
     if jax.default_backend() == "cpu" and modes != ("cpu",):
         log.warning("backend=mjx on a CPU: expect minutes of compilation per task; backend=mujoco measures the "
                     "CPU backend")
@@ -224,6 +229,14 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         out["peak_device_bytes_per_env"] = None if peak is None else peak / sum(sizes)
     if "homogeneous" in modes:
         out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup) for b, n in zip(buckets, sizes)])
+    if "streams" in modes:
+        from .mjx.streams import measure_streams
+
+        if impl != "warp":
+            raise ValueError("bench sim mode 'streams' runs MuJoCo Warp: it needs backend.impl=warp on an NVIDIA GPU")
+
+        controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
+        out["streams"] = measure_streams(buckets, sizes, controls, steps, warmup)
     if "cpu" in modes:
         from .mujoco.bench import measure_cpu
 
@@ -233,7 +246,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         out["cpu"] = {"backend": "mujoco", "num_envs": cpu_envs, "steps": cpu_steps, "threads": cpu["threads"],
                       **_cpu_figures(cpu, substeps)}
     ratios = {}
-    for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu")):
+    for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu"),
+                 ("streams", "homogeneous"), ("streams", "heterogeneous")):
         if a in out and b in out:
             ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
     out["ratios"] = ratios

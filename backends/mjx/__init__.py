@@ -5,7 +5,8 @@
 - `batch`: `Engine`, every bucket's batch stepped in one jitted tick (sub-steps, resets, refills, hooks);
 - `backend`: `MjxBackend`, the `Backend` interface with actions, predicates and proprioception on the device;
 - `parity`: `parity_report` / `format_table`, agreement with the `mujoco` backend;
-- `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`).
+- `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`);
+- `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode).
 """
 
 from __future__ import annotations

@@ -77,3 +77,11 @@ def test_dojo_bench_sim_refuses_mjx_modes_on_the_mujoco_backend(tmp_path):
     result = _bench("backend=mujoco", "modes=[heterogeneous]", cwd=tmp_path)
     assert result.returncode == 1
     assert "heterogeneous and homogeneous are modes of backend=mjx" in result.stderr
+
+
+def test_streams_mode_is_asked_for_by_name_only():
+    """`streams` runs MuJoCo Warp (NVIDIA GPUs): the default modes, which also run on a CPU, leave it out."""
+    from dojo.backends.sim_bench import _modes
+
+    assert "streams" not in _modes("mjx", None)
+    assert _modes("mjx", ["heterogeneous", "streams"]) == ("heterogeneous", "streams")

@@ -1,0 +1,85 @@
+"""MuJoCo Warp on an NVIDIA GPU (`pytest -m gpu`): overflow bits as decoded, overflow detected in a real step,
+and the stream engine stepping the same physics as `Engine(impl='warp')`, bucket by bucket."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import toy_plan
+
+from dojo.backends.mjx import batch
+from dojo.backends.mjx.bucket import make_buckets
+
+pytestmark = pytest.mark.gpu
+B = 4
+"""Worlds per bucket, the same in every test: a second Engine of the same structures at another batch size in one
+process failed inside MJX's Warp call ("Warp error: unknown stream", H100, 2026-11-25; not investigated yet)."""
+
+
+@pytest.fixture(scope="module")
+def warp_ready():
+    from dojo.backends.mjx.cache import warp_available
+
+    if not warp_available():
+        pytest.skip("needs an NVIDIA GPU and mujoco-warp")
+
+
+@pytest.fixture(scope="module")
+def buckets():
+    plans = ([toy_plan(seed=s) for s in range(2)]
+             + [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate([("ball",), ("ball", "box")])])
+    return make_buckets(plans)
+
+
+def test_overflow_flags_match_mujoco_warp(warp_ready):
+    from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+    for flag in batch.OVERFLOW_FLAGS:
+        assert flag in {int(f) for f in OverflowType}
+    assert int(OverflowType.ITERATIONS) not in batch.OVERFLOW_FLAGS
+
+
+def _run_engine(buckets, sizes, ctrl, ticks):
+    from dojo.backends.mjx.batch import Engine
+
+    engine = Engine(buckets, sizes, "warp")
+    members = [np.arange(n) % len(b.members) for b, n in zip(buckets, sizes)]
+    on = [np.ones(n, bool) for n in sizes]
+    off = [np.zeros(n, bool) for n in sizes]
+    engine.tick(members, on, off, ctrl)
+    for _ in range(ticks):
+        engine.tick(members, off, on, ctrl)
+    return engine
+
+
+def test_sized_buffers_do_not_overflow_and_streams_step_the_same_physics(warp_ready, buckets):
+    from dojo.backends.mjx.streams import StreamEngine
+
+    sizes = [B] * len(buckets)
+    ctrl = [np.full((n, b.model.nu), 0.2, np.float32) for b, n in zip(buckets, sizes)]
+    ticks = 5
+    engine = _run_engine(buckets, sizes, ctrl, ticks)
+    engine.check_overflow()
+    for serial in (False, True):
+        streams = StreamEngine(buckets, sizes, [[c] for c in ctrl], serial=serial)
+        # the constructor ran one warm-up sub-step on the initial state: start both from there
+        for _ in range(ticks):
+            streams.tick(0)
+        streams.synchronize()
+        streams.check_overflow()
+        for lane, data in zip(streams.lanes, engine.data):
+            ours = lane.data.qpos.numpy()
+            theirs = np.asarray(data.qpos)
+            assert np.all(np.isfinite(ours))
+            # the slider (joint 0) follows its 0.2 m target the same way; free bodies settle alike
+            np.testing.assert_allclose(ours[:, 0], theirs[:, 0], atol=2e-2)
+
+
+def test_too_small_buffers_are_reported_not_dropped_silently(warp_ready, buckets, monkeypatch):
+    monkeypatch.setattr(batch, "contact_capacity", lambda bucket: (1, 8))
+    sizes = [B] * len(buckets)
+    ctrl = [np.zeros((n, b.model.nu), np.float32) for b, n in zip(buckets, sizes)]
+    engine = _run_engine(buckets, sizes, ctrl, 2)
+    assert engine.overflows(), "one contact slot per world for boxes resting on a floor must overflow"
+    with pytest.raises(batch.CapacityOverflow):
+        engine.check_overflow()
