@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from . import PREDICATE, PredicateWord, register
+from ..predicate_registry import PREDICATE, PredicateWord, register
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from dojo.backends import predicates as P
 
-from . import PredicateWord, ref_and_number, register
+from ..predicate_registry import PredicateWord, ref_and_number, register
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from dojo.backends import predicates as P
 
-from . import OBJREF, PredicateWord, register
+from ..predicate_registry import OBJREF, PredicateWord, register
 
 SCHEMA = {
     "description": "[a, b, distance]: a's centre is within distance metres of b's.",

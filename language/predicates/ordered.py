@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any
 
-from . import PREDICATE, PredicateWord, register
+from ..predicate_registry import PREDICATE, PredicateWord, register
 
 SCHEMA = {"description": "The listed predicates first became true in this order.", "type": "array",
           "items": {"$ref": PREDICATE}, "minItems": 2}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from . import OBJREF, PredicateWord, register
+from ..predicate_registry import OBJREF, PredicateWord, register
 
 SCHEMA = {
     "description": "[button, times]: the button was pressed at least times times.",

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from . import QUANTIFIER, PredicateWord, register
+from ..predicate_registry import QUANTIFIER, PredicateWord, register
 from .connectives import AllOf, AnyOf
 
 

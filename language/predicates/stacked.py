@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from itertools import pairwise
 
-from . import PredicateWord, objref_list, register
+from ..predicate_registry import PredicateWord, objref_list, register
 from .connectives import AllOf
 
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from dojo.backends import predicates as P
 
-from . import PredicateWord, objref_list, register
+from ..predicate_registry import PredicateWord, objref_list, register
 
 
 @dataclass(frozen=True)
