@@ -300,8 +300,8 @@ def measure_cpu_render(plans: Sequence[Any], grid: Sequence[tuple[int, int, bool
                        steps: int) -> dict[str, Any]:
     """MuJoCo renderer figures: one reused renderer's frames/s and the mujoco backend's interactions/s."""
     from dojo.backends.actions import action_dim
-    from dojo.backends.mujoco.backend import MujocoBackend
     from dojo.backends.mujoco.render import ensure_headless_gl
+    from dojo.backends.registry import BackendOptions, make_backend
 
     from .gl_platform import gl_enabled, gl_unavailable_reason
     from .mjx.render import CAMERAS, CpuRenderer, RenderConfig
@@ -320,7 +320,8 @@ def measure_cpu_render(plans: Sequence[Any], grid: Sequence[tuple[int, int, bool
         renderer.render(range(len(chosen)), qpos)
         frames_s = time.perf_counter() - t0
         renderer.close()
-        with MujocoBackend(cameras=CAMERAS, width=width, height=height, depth=depth) as backend:
+        options = BackendOptions(cameras=CAMERAS, width=width, height=height, depth=depth)
+        with make_backend("mujoco", options) as backend:
             backend.load(chosen)
             backend.reset()
             zero = np.zeros((len(chosen), action_dim("joint", len(chosen[0].robot["arm_joints"]) // 2)))

@@ -50,7 +50,7 @@ CHECK_OPTIONS = (
 )
 NEW_OPTIONS = (
     Option("dir", "str", ".", "folder in which the package folder NAME is created"),
-    Option("task", "str", "stack_bowls", "task the policy is trained for"),
+    Option("task", "str", "my_task", "task the policy is trained for (a task id, e.g. stack_bowls)"),
     Option("robot", "str", "arx_x5_bimanual", "embodiment"),
     Option("action_type", "str", "joint", "joint or ee"),
     Option("chunk_size", "int", 8, "actions per chunk"),

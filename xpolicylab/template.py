@@ -14,7 +14,7 @@ from typing import Any
 from xpolicylab.embodiments import ACTION_MODES, EMBODIMENTS
 
 FILES = ("install.sh", "process_data.sh", "train.sh", "eval.sh", "model.py", "deploy.py", "deploy.yml")
-DEFAULTS: dict[str, Any] = {"task": "stack_bowls", "robot": "arx_x5_bimanual", "action_type": "joint",
+DEFAULTS: dict[str, Any] = {"task": "my_task", "robot": "arx_x5_bimanual", "action_type": "joint",
                             "chunk_size": 8, "seed": 0}
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
