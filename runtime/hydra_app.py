@@ -98,8 +98,8 @@ def check_overrides(config_name: str, overrides: list[str]) -> str | None:
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            base = compose(config_name=config_name)
-            for override in parsed:
+            groups, keys = [], []
+            for override, text in zip(parsed, single):
                 key = override.key_or_group
                 if override.is_add() or key.startswith("hydra") or override.package:
                     continue
@@ -110,8 +110,13 @@ def check_overrides(config_name: str, overrides: list[str]) -> str | None:
                         if str(value) not in options and value is not None:
                             return (f"unknown {key} '{value}'{did_you_mean(str(value), options)}; "
                                     f"options: {', '.join(options)}")
-                    continue
-                known = _flat_keys(base)
+                    groups.append(text)
+                else:
+                    keys.append(key)
+            # The chosen options' own keys are known keys (launcher=ray launcher.address=auto, backend=mjx
+            # backend.impl=warp): they are read off the config composed with the group choices.
+            known = _flat_keys(compose(config_name=config_name, overrides=groups))
+            for key in keys:
                 if key not in known:
                     hint = did_you_mean(key, known)  # a near miss is a typo: adding it as a new key would not help
                     return f"unknown key '{key}'" + (hint or f"; to add a new key write +{key}=VALUE")

@@ -82,6 +82,18 @@ RUNTIME_POLICIES = {"oracle": "dojo.runtime.oracle:OraclePolicy"}
 """Reference policies that need the simulator (so they live here, not in the MuJoCo-free xpolicylab)."""
 
 
+def policy_config_for(cfg: dict[str, Any], worker: int) -> dict[str, Any]:
+    """The policy config of one worker of a run: `url` may list servers, one per worker (worker i talks to the
+    i-th, round robin when there are more workers), so that a policy too slow for every worker at once can be
+    served several times. A single `url` is every worker's."""
+    urls = cfg.get("url")
+    if isinstance(urls, (list, tuple)):
+        if not urls:
+            raise ValueError("policy.url is an empty list: give one server, or one per worker")
+        return {**cfg, "url": urls[worker % len(urls)]}
+    return cfg
+
+
 def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
     """The policy a run's config names: `url` set -> a server; otherwise a built-in or importable Model."""
     if cfg.get("url"):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from functools import partial
 from pathlib import Path
 from collections.abc import Callable
 from typing import Any
@@ -25,7 +26,7 @@ from dojo.backends.registry import factory_from_config
 
 from .camera_budget import budget_message, image_size, images_per_second
 from .evaluate import QueuedEpisode, evaluate, run_id_for
-from .policy_link import PRIVILEGED_NOTE, is_privileged
+from .policy_link import PRIVILEGED_NOTE, is_privileged, policy_config_for
 from .recorder import EpisodeRecorder, record_cameras
 
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
@@ -95,7 +96,10 @@ def run_task(cfg: DictConfig) -> int:
 
     embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
-    policy = open_policy(policy_cfg, embodiment)  # type: ignore[arg-type]
+    if isinstance(policy_cfg.get("url"), list) and len(policy_cfg["url"]) > 1 and cfg.launcher.name != "ray":
+        raise ValueError(f"policy.url lists {len(policy_cfg['url'])} servers, one per worker of launcher=ray; "
+                         "launcher=local talks to one")
+    policy = open_policy(policy_config_for(policy_cfg, 0), embodiment)  # type: ignore[arg-type]
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     store_path = Path(cfg.results) if cfg.results else out_dir / "results.sqlite"
     identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_cfg,
@@ -108,7 +112,8 @@ def run_task(cfg: DictConfig) -> int:
     meta = policy.metadata
     cameras = tuple(meta.cameras) + tuple(c for c in recorded if c not in meta.cameras)
     width, height, size_warning = image_size(meta, cfg.width, cfg.height)
-    recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=policy.metadata.action_mode,
+    action_mode = meta.action_mode  # not the policy link itself: a Ray worker gets a copy of this factory
+    recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=action_mode,
                                                 relative_to=store_path.parent)) if recorded else None
     try:
         with ResultsStore(store_path) as store:
@@ -118,10 +123,14 @@ def run_task(cfg: DictConfig) -> int:
                 _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id))
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
-                evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy, store,
-                         run_id, num_envs=int(cfg.num_envs), progress=progress,
-                         episode_timeout_s=float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None,
-                         recorder_factory=recorder_factory)
+                timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
+                if cfg.launcher.name == "ray":
+                    _evaluate_on_ray(cfg, queue, policy_cfg, embodiment, run_id, store, progress, plan_paths,
+                                     timeout, (meta, cameras, (width, height)), recorder_factory)
+                else:
+                    evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy,
+                             store, run_id, num_envs=int(cfg.num_envs), progress=progress,
+                             episode_timeout_s=timeout, recorder_factory=recorder_factory)
             rows = store.rows(run_id)
     finally:
         policy.close()
@@ -134,6 +143,22 @@ def run_task(cfg: DictConfig) -> int:
         write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
         print(f"report: {report_path} and {report_path.with_suffix('.html')}")
     return 0
+
+
+def _evaluate_on_ray(cfg: DictConfig, queue: list[QueuedEpisode], policy_cfg: dict[str, Any], embodiment: str,
+                     run_id: str, store: Any, progress: Any, plan_paths: dict[str, str], timeout: float | None,
+                     rendering: tuple[Any, tuple[str, ...], tuple[int, int]], recorder_factory: Any) -> int:
+    """`launcher=ray`: the episodes over the workers of a Ray cluster (launch_ray), each building the backend this
+    process would (with its own share of threads) and opening its own policy link."""
+    from .launch_ray import RayOptions, WorkerJob, evaluate_on_ray
+
+    options = RayOptions.of(OmegaConf.to_container(cfg.launcher, resolve=True), str(cfg.backend.name))
+    settings = options.backend_settings(OmegaConf.to_container(cfg.backend, resolve=True))  # type: ignore[arg-type]
+    backend = OmegaConf.create({"backend": settings})
+    job = WorkerJob(run_id=run_id, backend_for=partial(_backend_factory, backend, *rendering), policy=policy_cfg,
+                    embodiment=embodiment, num_envs=int(cfg.num_envs), plan_paths=plan_paths,
+                    episode_timeout_s=timeout, recorder_factory=recorder_factory)
+    return evaluate_on_ray(queue, job, store, progress, options)
 
 
 def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,

@@ -30,6 +30,9 @@ RESOLVER = "dojo_run_key"
 # the run id inside the store still tells runs of different servers apart).
 NOT_IN_KEY = frozenset({"suite", "policy", "results", "report", "num_envs", "progress", "jobs", "plans",
                         "episode_timeout_s", "policy.url", "policy.token"})
+# Groups none of whose keys change the results: where a run executes (`launcher=ray launcher.workers=4` resumes
+# the run that `launcher=local` started) and Hydra's own.
+NOT_IN_KEY_GROUPS = frozenset({"hydra", "launcher"})
 MAX_VALUE = 32  # characters of a value kept whole; longer ones are cut and given a hash
 MAX_KEY = 96
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -65,7 +68,7 @@ def run_key(overrides: Iterable[str]) -> str:
     parts: dict[str, str] = {}  # a key given twice counts once, with its last value (as Hydra composes it)
     for override in OverridesParser.create().parse_overrides([str(o) for o in overrides]):
         key = override.key_or_group
-        if key in NOT_IN_KEY or key.startswith("hydra.") or key == "hydra":
+        if key in NOT_IN_KEY or key.split(".", 1)[0] in NOT_IN_KEY_GROUPS:
             continue
         if override.is_delete():
             parts[key] = f"no-{_safe(key)}"
