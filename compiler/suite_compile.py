@@ -124,12 +124,23 @@ def compile_plan_files(library: SpecLibrary, todo: Sequence[PlanJob], *, jobs: i
             progress(done, len(todo))
 
 
+@dataclass(frozen=True)
+class PlannedEpisode:
+    """An episode of the protocol with the plan that runs it: what `dojo run` queues, handed over typed rather
+    than written to `index.json` and parsed back (the index stays, for people and other tools)."""
+
+    episode: Episode
+    plan_hash: str
+    plan_path: Path
+
+
 @dataclass
 class CompileStats:
     plans: int
     compiled: int
     cached: int
     index: str
+    episodes: tuple[PlannedEpisode, ...] = ()
 
 
 def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1, seeds: list[int] | None = None,
@@ -140,7 +151,7 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1
     `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons; `tasks` keeps only
     those of the suite's tasks."""
     out.mkdir(parents=True, exist_ok=True)
-    entries, todo, queued = [], [], set()
+    entries, planned, todo, queued = [], [], [], set()
     demos = demo_lengths or {}
     specs = {task.id: task for task, _ in library.suite_tasks(suite)}
     for episode in suite_episodes(library, suite, seeds=seeds, episodes=episodes, tasks=tasks):
@@ -148,6 +159,7 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1
         digest = plan_hash(library, task, episode.setting, episode.scene_seed, demos.get(episode.task))
         path = plan_path(out, episode, digest)
         entries.append({**asdict(episode), "hash": digest, "path": str(path.relative_to(out))})
+        planned.append(PlannedEpisode(episode, digest, path))
         if not path.exists() and path not in queued:
             queued.add(path)
             todo.append((task.id, task.package, episode.setting, episode.scene_seed, str(path)))
@@ -157,4 +169,5 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1
     tmp.write_text(json.dumps({"format": INDEX_FORMAT, "suite": suite.id, "compiler": compiler_id(),
                                "plans": entries}, indent=1))
     os.replace(tmp, index)
-    return CompileStats(plans=len(entries), compiled=len(todo), cached=len(entries) - len(todo), index=str(index))
+    return CompileStats(plans=len(entries), compiled=len(todo), cached=len(entries) - len(todo), index=str(index),
+                        episodes=tuple(planned))

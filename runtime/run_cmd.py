@@ -13,7 +13,7 @@ import os
 from functools import partial
 from pathlib import Path
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
@@ -29,15 +29,18 @@ from .evaluate import QueuedEpisode, evaluate, run_id_for
 from .policy_link import PRIVILEGED_NOTE, is_privileged, policy_config_for
 from .recorder import EpisodeRecorder, record_cameras
 
+if TYPE_CHECKING:
+    from dojo.compiler.suite_compile import CompileStats
+
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
 
 
-def _queue(index_path: Path, split: str) -> list[QueuedEpisode]:
-    index = json.loads(index_path.read_text())
-    return [QueuedEpisode(plan_path=index_path.parent / e["path"], plan_hash=e["hash"], task=e["task"],
-                          dimension=e["dimension"], setting=e["setting"], eval_seed=e["eval_seed"],
-                          episode=e["index"], scene_seed=e["scene_seed"], split=split)
-            for e in index["plans"]]
+def _queue(stats: CompileStats, split: str) -> list[QueuedEpisode]:
+    """The compiled suite's episodes, in protocol order, for the evaluation loop."""
+    return [QueuedEpisode(plan_path=p.plan_path, plan_hash=p.plan_hash, task=p.episode.task,
+                          dimension=p.episode.dimension, setting=p.episode.setting, eval_seed=p.episode.eval_seed,
+                          episode=p.episode.index, scene_seed=p.episode.scene_seed, split=split)
+            for p in stats.episodes]
 
 
 def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
@@ -85,14 +88,14 @@ def run_task(cfg: DictConfig) -> int:
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=tasks)
-    queue = _queue(Path(stats.index), "public")
+    queue = _queue(stats, "public")
     hidden = _hidden_seeds(cfg, suite)
     if hidden:
         hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
         count = suite.data["verification"].get("episodes", 10)
         hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
                                      demo_lengths=demos, tasks=tasks)
-        queue += _queue(Path(hidden_stats.index), "hidden")
+        queue += _queue(hidden_stats, "hidden")
 
     embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
