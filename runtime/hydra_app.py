@@ -10,6 +10,7 @@ and `--help`. Two things are added around it:
 
 from __future__ import annotations
 
+import os
 import sys
 from importlib import resources
 from pathlib import Path
@@ -155,13 +156,22 @@ def run_hydra_command(name: str, config_name: str, argv: list[str], task: Callab
 
     result: dict[str, int] = {}
     errors: list[BaseException] = []
+    here = os.getpid()
 
     def _main(cfg: DictConfig) -> None:
-        # Errors leave through our CLI's handler (one clear line), not Hydra's traceback printer.
+        # Errors leave through our CLI's handler (one clear line), not Hydra's traceback printer. A sweep's job that
+        # a launcher runs in another process (hydra/launcher=joblib or ray) cannot hand its error or exit code back
+        # through these variables: there it raises, so that Hydra fails the job and the sweep, and `dojo` exits 1.
         try:
-            result["code"] = max(result.get("code", 0), task(cfg))
+            code = task(cfg)
         except Exception as err:  # noqa: BLE001 - re-raised below, outside Hydra
+            if os.getpid() != here:
+                raise
             errors.append(err)
+            return
+        if code and os.getpid() != here:
+            raise RuntimeError(f"dojo {name} ended with exit code {code}")
+        result["code"] = max(result.get("code", 0), code)
 
     app = hydra.main(config_path=str(CONFIG_DIR), config_name=config_name, version_base="1.3")(_main)
     saved = sys.argv

@@ -105,14 +105,25 @@ def evaluate_on_ray(queue: list[QueuedEpisode], job: WorkerJob, store: RowSink, 
     import ray
 
     started = not ray.is_initialized()
-    if started:
-        ray.init(address=options.address, num_cpus=None if options.address else options.num_cpus,
-                 include_dashboard=False, logging_level=logging.WARNING)
+    if started and options.address:
+        ray.init(address=options.address, logging_level=logging.WARNING)
+    elif started:
+        start_local_cluster(options.num_cpus)
     try:
         return _drive(todo, job, store, progress, options)
     finally:
         if started:
             ray.shutdown()
+
+
+def start_local_cluster(num_cpus: int | None = None) -> None:
+    """A Ray cluster of this machine for this process (`num_cpus`: None = every core). Its workers run at the
+    priority of `dojo run` itself: Ray's default niceness for workers, 15, makes them yield to every other process,
+    and on a shared machine the others then took most of their CPU (RAY_worker_niceness, if set, is kept)."""
+    import ray
+
+    os.environ.setdefault("RAY_worker_niceness", "0")
+    ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level=logging.WARNING)
 
 
 def _drive(todo: list[QueuedEpisode], job: WorkerJob, store: RowSink, progress: ProgressSink,

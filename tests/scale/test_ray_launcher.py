@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from dojo.runtime.launch_ray import start_local_cluster
 from dojo.runtime.results_store import ResultsStore
 
 ray = pytest.importorskip("ray", reason="the Ray launcher needs the ray extra: pip install 'robodojo[ray]'")
@@ -34,8 +35,8 @@ WORKER_TITLE = "ray::_ShardWorker"
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
     """A two-CPU cluster owned by this process, and the environment in which `dojo run` joins it."""
-    saved = os.environ.get("RAY_AUTH_MODE")
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
+    saved = dict(os.environ)
+    start_local_cluster(num_cpus=2)  # as `dojo run launcher=ray` starts one
     # Ray enables token authentication for the cluster it starts (RAY_AUTH_MODE=token in this process); a driver
     # that joins by address must say so too.
     env = dict(os.environ, DOJO_PLAN_CACHE=str(tmp_path_factory.mktemp("plans")))
@@ -44,10 +45,8 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]
         yield env
     finally:
         ray.shutdown()
-        if saved is None:
-            os.environ.pop("RAY_AUTH_MODE", None)
-        else:
-            os.environ["RAY_AUTH_MODE"] = saved
+        os.environ.clear()
+        os.environ.update(saved)
 
 
 def dojo(args: list[str], env: dict[str, str], cwd: Path, background: bool = False
