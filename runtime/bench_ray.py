@@ -23,6 +23,7 @@ from typing import Any
 from .results_store import ResultsStore
 
 USAGE = "usage: dojo bench ray [workers=1,2] [repeats=1] [dojo run overrides ...]"
+OWN_KEYS = ("workers", "repeats")
 
 
 def bench_ray_main(argv: list[str]) -> int:
@@ -30,8 +31,7 @@ def bench_ray_main(argv: list[str]) -> int:
     if {"-h", "--help"} & set(argv):
         print(__doc__.strip() + "\n\n" + USAGE)
         return 0
-    own = dict(a.split("=", 1) for a in argv if a.split("=", 1)[0] in ("workers", "repeats"))
-    overrides = [a for a in argv if a.split("=", 1)[0] not in ("workers", "repeats")]
+    own, overrides = split_arguments(argv)
     try:
         workers = [int(w) for w in own.get("workers", "1,2").strip("[]").split(",")]
         repeats = int(own.get("repeats", "1"))
@@ -40,6 +40,12 @@ def bench_ray_main(argv: list[str]) -> int:
         return 2
     print(json.dumps(bench_ray(overrides, workers, repeats)))
     return 0
+
+
+def split_arguments(argv: list[str]) -> tuple[dict[str, str], list[str]]:
+    """The bench's own keys (`workers`, `repeats`), and the `dojo run` overrides."""
+    own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] in OWN_KEYS and "=" in a}
+    return own, [a for a in argv if a.split("=", 1)[0] not in OWN_KEYS]
 
 
 def bench_ray(overrides: list[str], workers: list[int], repeats: int = 1) -> dict[str, Any]:

@@ -138,7 +138,7 @@ def _drive(todo: list[QueuedEpisode], job: WorkerJob, store: RowSink, progress: 
     dispatcher = ray.remote(EpisodeDispatcher).options(num_cpus=0, scheduling_strategy=here,
                                                        runtime_env=env).remote(todo)
     plans = [ray.put({h: Path(p).read_bytes() for h, p in job.plan_paths.items()})]  # nested: fetched if needed
-    count = min(options.workers or _workers_that_fit(options), len(todo))
+    count = worker_count(options, ray.cluster_resources(), len(todo))
     log.info("ray: %d workers (%g CPU, %g GPU each) on a cluster of %s", count, options.cpus_per_worker,
              options.gpus_per_worker, _resources(ray.cluster_resources()))
     worker_class = ray.remote(_ShardWorker).options(num_cpus=options.cpus_per_worker,
@@ -195,18 +195,27 @@ def _stop(ray: Any, workers: list[Any], dead: set[int], dispatcher: Any) -> None
         ray.kill(actor)
 
 
-def _workers_that_fit(options: RayOptions) -> int:
-    """As many workers as the cluster's resources hold at once (at least one)."""
-    import ray
+def worker_count(options: RayOptions, cluster: Mapping[str, float], episodes: int) -> int:
+    """`launcher.workers`, else as many workers as the cluster's resources hold at once; never more than episodes.
 
-    total = ray.cluster_resources()
-    fits = [total.get("CPU", 0) // options.cpus_per_worker if options.cpus_per_worker else None,
-            total.get("GPU", 0) // options.gpus_per_worker if options.gpus_per_worker else None]
-    return max(1, int(min(f for f in fits if f is not None)) if any(f is not None for f in fits) else 1)
+    Ray would keep a worker the cluster cannot hold waiting for resources, forever on a fixed cluster: with no
+    `launcher.workers` that is an error here; an explicit count larger than what fits only warns (an autoscaling
+    cluster grows for it)."""
+    held = [cluster.get(kind, 0.0) // need for kind, need in
+            (("CPU", options.cpus_per_worker), ("GPU", options.gpus_per_worker)) if need]
+    fits = int(min(held)) if held else episodes
+    if options.workers and options.workers > fits:
+        log.warning("ray: %d workers asked for, %d fit in a cluster of %s; the others wait for resources",
+                    options.workers, fits, _resources(cluster))
+    elif not options.workers and fits < 1:
+        raise ValueError(f"a worker needs {options.cpus_per_worker:g} CPU and {options.gpus_per_worker:g} GPU "
+                         f"(launcher.cpus_per_worker, launcher.gpus_per_worker) and the cluster has "
+                         f"{_resources(cluster)}")
+    return max(1, min(options.workers or fits, episodes))
 
 
 def _resources(total: Mapping[str, float]) -> str:
-    return ", ".join(f"{total[k]:g} {k}" for k in ("CPU", "GPU") if total.get(k)) or "no CPUs yet"
+    return ", ".join(f"{total[k]:g} {k}" for k in ("CPU", "GPU") if total.get(k)) or "no CPU or GPU"
 
 
 def setup_worker_process() -> None:

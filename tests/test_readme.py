@@ -207,6 +207,7 @@ def test_readme_quick_start_runs_as_written_from_a_fresh_clone(tmp_path: Path) -
 
 def test_every_dojo_command_in_the_readme_parses() -> None:
     """Commands outside the quick start (GPU, long jobs) are not run here; their overrides must still compose."""
+    from dojo.runtime.bench_ray import split_arguments
     from dojo.runtime.cli import COMMANDS, _jobs_flag, _what_word
     from dojo.runtime.hydra_app import _register_spec_groups, check_overrides, overrides_of
 
@@ -218,6 +219,8 @@ def test_every_dojo_command_in_the_readme_parses() -> None:
             words = shlex.split(command.rstrip("&").strip()) if command.startswith("dojo ") else []
             if len(words) < 2 or words[1].startswith("-") or words[1:3] == ["bench", "policy"]:
                 continue
+            if words[1:3] == ["bench", "ray"]:  # its own keys, then the overrides of the `dojo run` it times
+                words = ["dojo", "run", *split_arguments(words[3:])[1]]
             assert words[1] in COMMANDS, command
             if words[1] not in hydra_commands:
                 continue

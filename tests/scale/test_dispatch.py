@@ -11,7 +11,7 @@ import pytest
 from dojo.runtime.dispatch import EpisodeDispatcher, episode_key
 from dojo.runtime.episode import EpisodeResult
 from dojo.runtime.evaluate import QueuedEpisode
-from dojo.runtime.launch_ray import RayOptions, local_plan_paths
+from dojo.runtime.launch_ray import RayOptions, local_plan_paths, worker_count
 from dojo.runtime.policy_link import policy_config_for
 from dojo.runtime.run_dir import run_key
 
@@ -98,6 +98,17 @@ def test_worker_options() -> None:
     assert options.gpus_per_worker == 0 and options.backend_settings({"name": "mujoco", "threads": 0})["threads"] == 2
     assert options.backend_settings({"name": "mujoco", "threads": 3})["threads"] == 3
     assert "threads" not in options.backend_settings({"name": "mjx", "impl": "auto"})
+
+
+def test_worker_count_fits_the_cluster() -> None:
+    cpus = RayOptions.of({"name": "ray"}, "mujoco")
+    assert worker_count(cpus, {"CPU": 16.0}, episodes=22) == 16
+    assert worker_count(cpus, {"CPU": 16.0}, episodes=3) == 3  # never more workers than episodes
+    gpus = RayOptions.of({"name": "ray"}, "mjx")
+    assert worker_count(gpus, {"CPU": 64.0, "GPU": 4.0}, episodes=100) == 4  # one GPU each
+    with pytest.raises(ValueError, match="GPU"):  # MJX on a cluster without GPUs would wait forever
+        worker_count(gpus, {"CPU": 2.0}, episodes=10)
+    assert worker_count(RayOptions(workers=8), {"CPU": 2.0}, episodes=10) == 8  # asked for: waits for resources
 
 
 def test_where_a_run_executes_is_not_part_of_its_folder() -> None:

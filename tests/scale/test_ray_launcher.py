@@ -1,6 +1,6 @@
 """`dojo run launcher=ray` on a real local Ray cluster of two CPUs (one for the module: Ray takes seconds to start):
 two workers record exactly what one process records, episode by episode; `kill -9` of a worker mid-run loses and
-repeats nothing; a run resumes across launchers.
+repeats nothing; a run resumes across launchers; each worker talks to its own policy server when given a list.
 
 The cluster is started here, as `ray start --head` would start one, and each `dojo run` joins it by address
 (`launcher.address`), as a run joins a cluster that is already up.
@@ -12,6 +12,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
@@ -143,3 +144,27 @@ def test_a_run_resumes_across_launchers(cluster: dict[str, str], reference: Path
     summary = next(line for line in done.stdout.splitlines() if line.startswith('{"event": "summary"'))
     assert '"done": 4, "total": 4, "resumed": 2' in summary
     assert episodes(store) == episodes(reference)
+
+
+def test_each_worker_talks_to_its_own_policy_server(cluster: dict[str, str], tmp_path: Path) -> None:
+    pack = Path(__file__).resolve().parents[1] / "specs" / "pack"
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    logs = [tmp_path / f"server{i}.log" for i in range(2)]
+    servers = [subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"port={port}"],
+                                stdout=subprocess.DEVNULL, stderr=log.open("w")) for port, log in zip(ports, logs)]
+    try:
+        urls = ",".join(f"ws://127.0.0.1:{port}" for port in ports)
+        done = dojo(["run", f"packs=[{pack}]", "suite=mini_test", "episodes=1", "policy=remote",
+                     f"policy.url=[{urls}]", *on_ray(cluster), f"results={tmp_path / 'r.sqlite'}"], cluster, tmp_path)
+    finally:
+        for server in servers:
+            server.terminate()
+            server.wait(timeout=30)
+    assert done.returncode == 0, done.stderr
+    assert len(episodes(tmp_path / "r.sqlite")) == 2
+    opened = [log.read_text().count("connection open") for log in logs]
+    assert opened == [2, 1]  # the first server: this run's own look at the policy, and worker 0; the second: worker 1
