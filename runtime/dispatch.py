@@ -41,6 +41,14 @@ class Drained:
     queued: int  # of which in the queue, waiting for a worker
 
 
+def longest_first(items: Iterable[QueuedEpisode], horizons: dict[str, int]) -> list[QueuedEpisode]:
+    """The queue with the episodes of the longest horizons first (in queue order among equals). A run over several
+    workers ends when its last episodes do: started last, long episodes leave the other workers idle at the end;
+    with the longest first the tail is short ones and the workers finish together. The horizon is an episode's
+    length for a policy that fails it, and an upper bound otherwise."""
+    return sorted(items, key=lambda item: -horizons.get(item.plan_hash, 0))
+
+
 class EpisodeDispatcher:
     """A run's queue of episodes, shared by its workers (see the module's docstring)."""
 

@@ -21,6 +21,7 @@ Ray's object store and keeps them in its own plan cache (plans are content-addre
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -29,7 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .dispatch import EpisodeDispatcher, episode_key
+from .dispatch import EpisodeDispatcher, episode_key, longest_first
 
 if TYPE_CHECKING:  # the worker process imports these only once its GL platform is chosen
     from dojo.backends.base import Backend
@@ -134,10 +135,12 @@ def _drive(todo: list[QueuedEpisode], job: WorkerJob, store: RowSink, progress: 
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     env = {"worker_process_setup_hook": f"{__name__}.setup_worker_process"}
+    blobs = {h: Path(p).read_bytes() for h, p in job.plan_paths.items()}
+    plans = [ray.put(blobs)]  # nested in a list: a worker fetches them only if it cannot read the driver's files
+    horizons = {h: int(json.loads(blob)["horizon"]) for h, blob in blobs.items()}
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     dispatcher = ray.remote(EpisodeDispatcher).options(num_cpus=0, scheduling_strategy=here,
-                                                       runtime_env=env).remote(todo)
-    plans = [ray.put({h: Path(p).read_bytes() for h, p in job.plan_paths.items()})]  # nested: fetched if needed
+                                                       runtime_env=env).remote(longest_first(todo, horizons))
     count = worker_count(options, ray.cluster_resources(), len(todo))
     log.info("ray: %d workers (%g CPU, %g GPU each) on a cluster of %s", count, options.cpus_per_worker,
              options.gpus_per_worker, _resources(ray.cluster_resources()))

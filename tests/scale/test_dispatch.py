@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.dispatch import EpisodeDispatcher, episode_key
+from dojo.runtime.dispatch import EpisodeDispatcher, episode_key, longest_first
 from dojo.runtime.episode import EpisodeResult
 from dojo.runtime.evaluate import QueuedEpisode
 from dojo.runtime.launch_ray import RayOptions, local_plan_paths, worker_count
@@ -64,6 +64,12 @@ def test_a_late_report_of_a_requeued_episode_counts_once(pulled_again: bool) -> 
     assert [episode_key(q) for q in [lost]] == [(r.plan_hash, r.eval_seed, r.episode) for r in rows]
     assert [q.episode for q in d.pull(1, 2)] == [1]  # not queued twice
     assert d.left() == 1
+
+
+def test_the_longest_episodes_are_handed_out_first() -> None:
+    items = [item(i) for i in range(4)]
+    ordered = longest_first(items, {"p0": 300, "p1": 2200, "p2": 300, "p3": 700})
+    assert [q.episode for q in ordered] == [1, 3, 0, 2]  # equals keep their queue order
 
 
 def test_policy_url_list_gives_each_worker_its_server() -> None:
