@@ -36,7 +36,8 @@ class Hull:
     volume: float
 
 
-def _load_trimesh(path: Path) -> trimesh.Trimesh:
+def load_mesh(path: Path) -> trimesh.Trimesh:
+    """A mesh file as one trimesh, vertices unmerged (as written: touching pieces stay separate pieces)."""
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{path}: unsupported mesh format {path.suffix!r} (use one of {', '.join(MESH_SUFFIXES)})")
     if path.suffix.lower().startswith(".usd"):
@@ -99,7 +100,7 @@ def _pieces(mesh: trimesh.Trimesh) -> list[np.ndarray]:
 @functools.lru_cache(maxsize=256)
 def _hulls_cached(path: str, mesh_scale: tuple[float, float, float]) -> tuple[Hull, ...]:
     hulls = []
-    for piece in _pieces(_load_trimesh(Path(path))):
+    for piece in _pieces(load_mesh(Path(path))):
         verts = piece * np.asarray(mesh_scale)
         if len(verts) < 4 or np.linalg.matrix_rank(verts - verts.mean(axis=0), tol=1e-9) < 3:
             continue  # flat or degenerate piece: nothing to collide with

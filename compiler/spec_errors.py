@@ -37,13 +37,16 @@ def did_you_mean(word: str, candidates: Iterable[str]) -> str:
 
 @dataclass(frozen=True)
 class SpecProblem:
-    """One problem at one place in one spec file."""
+    """One problem at one place in one spec file. `safety` marks a breach of the rules that keep specs data
+    (custom tags, code keys, interpolations, paths leaving the package, size bounds): `dojo validate --strict`
+    reports those under its safety check, the rest under the schema check."""
 
     file: str
     line: int
     column: int
     path: JsonPath
     message: str
+    safety: bool = False
 
     def __str__(self) -> str:
         return f"{self.file}:{self.line}:{self.column}: {format_json_path(self.path)}: {self.message}"

@@ -84,28 +84,34 @@ def _relpath_keyword(validator: Any, enabled: Any, instance: Any, schema: dict) 
     ctx = _CONTEXT.get(None)
     if ctx is None:  # data that did not come from a file (a schema example): there is no package to check against
         return
-    problem = check_relpath(instance, ctx.spec_dir, ctx.package_root)
+    problem = relpath_problem(instance, ctx.spec_dir, ctx.package_root)
     if problem:
-        yield ValidationError(problem)
+        message, escapes = problem
+        yield _PathEscape(message) if escapes else ValidationError(message)
 
 
-def check_relpath(value: str, spec_dir: Path, package_root: Path) -> str | None:
-    """Why `value` is not an acceptable file path for a spec in `spec_dir`, or None if it is."""
+class _PathEscape(ValidationError):
+    """A file path that would read outside the spec's package: a safety problem, not a typo."""
+
+
+def relpath_problem(value: str, spec_dir: Path, package_root: Path) -> tuple[str, bool] | None:
+    """Why `value` is not an acceptable file path for a spec in `spec_dir`, and whether it reaches outside the
+    package (a safety problem); None if it is fine."""
     pure = PurePosixPath(value)
     if "\\" in value or pure.is_absolute() or (len(value) > 1 and value[1] == ":"):
-        return f"'{value}' is an absolute path: file paths in specs are relative to the spec file"
+        return f"'{value}' is an absolute path: file paths in specs are relative to the spec file", True
     if ".." in pure.parts:
-        return f"'{value}' contains '..': file paths in specs may not leave the spec's package"
+        return f"'{value}' contains '..': file paths in specs may not leave the spec's package", True
     target = spec_dir / pure
     try:
         resolved = target.resolve(strict=True)
     except (OSError, RuntimeError):
-        return f"file '{value}' does not exist (looked in {spec_dir})"
+        return f"file '{value}' does not exist (looked in {spec_dir})", False
     root = package_root.resolve()
     if resolved != root and root not in resolved.parents:
-        return f"'{value}' resolves outside the spec's package (a symlink to {resolved}): not allowed"
+        return f"'{value}' resolves outside the spec's package (a symlink to {resolved}): not allowed", True
     if not resolved.is_file():
-        return f"'{value}' is not a file"
+        return f"'{value}' is not a file", False
     return None
 
 
@@ -286,5 +292,6 @@ def _problems_from(error: ValidationError, located: Located, display: str) -> li
         bound = "at least" if v == "minItems" else "at most"
         return [at(path, f"expected {bound} {error.validator_value} items, got {len(instance)}")]
     if v == "x-relpath":
-        return [at(path, error.message)]
+        line, col = located.locate(path)
+        return [SpecProblem(display, line, col, path, error.message, isinstance(error, _PathEscape))]
     return [at(path, error.message)]

@@ -84,26 +84,26 @@ class _Converter:
         self.expanded = 0
         self._constructor = SpecLoader("")
 
-    def problem(self, node: Node, path: JsonPath, message: str) -> None:
+    def problem(self, node: Node, path: JsonPath, message: str, *, safety: bool = False) -> None:
         mark = node.start_mark
-        self.problems.append(SpecProblem(self.file, mark.line + 1, mark.column + 1, path, message))
+        self.problems.append(SpecProblem(self.file, mark.line + 1, mark.column + 1, path, message, safety))
 
     def convert(self, node: Node, path: JsonPath, active: tuple[int, ...]) -> Any:
         self.expanded += 1
         if self.expanded > MAX_EXPANDED_NODES:
             self.problem(node, path, f"document expands to more than {MAX_EXPANDED_NODES} nodes "
-                                     "(aliases repeat too much data)")
+                                     "(aliases repeat too much data)", safety=True)
             raise _Problems
         if len(path) > MAX_DEPTH:
-            self.problem(node, path, f"nesting deeper than {MAX_DEPTH} levels")
+            self.problem(node, path, f"nesting deeper than {MAX_DEPTH} levels", safety=True)
             raise _Problems
         if id(node) in active:
-            self.problem(node, path, "recursive alias: a node contains itself")
+            self.problem(node, path, "recursive alias: a node contains itself", safety=True)
             raise _Problems
         self.located.value_locs.setdefault(path, (node.start_mark.line + 1, node.start_mark.column + 1))
         if node.tag not in ALLOWED_TAGS:
             self.problem(node, path, f"tag '{node.tag}' is not allowed: specs are plain data "
-                                     "(no custom YAML tags, no includes, no code)")
+                                     "(no custom YAML tags, no includes, no code)", safety=True)
             return None
         if isinstance(node, ScalarNode):
             return self.scalar(node, path)
@@ -119,7 +119,7 @@ class _Converter:
             value = node.value  # dates stay text: the schemas never ask for a datetime object
         if isinstance(value, str) and _INTERPOLATION.search(value):
             self.problem(node, path, "'${...}' interpolation is not allowed in specs: "
-                                     "resolvers could run code; write the value itself")
+                                     "resolvers could run code; write the value itself", safety=True)
         return value
 
     def mapping(self, node: MappingNode, path: JsonPath, active: tuple[int, ...]) -> dict:
@@ -140,9 +140,9 @@ class _Converter:
             explicit.add(key)
             if key in CODE_KEYS:
                 self.problem(key_node, path + (key,), f"'{key}' is not allowed: specs are data and cannot "
-                                                      "name code to import or call")
+                                                      "name code to import or call", safety=True)
             if _INTERPOLATION.search(key):
-                self.problem(key_node, path + (key,), "'${...}' interpolation is not allowed in specs")
+                self.problem(key_node, path + (key,), "'${...}' interpolation is not allowed in specs", safety=True)
             self.located.key_locs[path + (key,)] = (key_node.start_mark.line + 1, key_node.start_mark.column + 1)
             out[key] = self.convert(value_node, path + (key,), active)
         for merge in merges:
@@ -170,7 +170,7 @@ def read_spec_yaml(path: Path, display: str) -> tuple[Located | None, list[SpecP
         size = path.stat().st_size
         if size > MAX_SPEC_BYTES:
             return None, [SpecProblem(display, 1, 1, (), f"file is {size} bytes; specs may be at most "
-                                                         f"{MAX_SPEC_BYTES} bytes")]
+                                                         f"{MAX_SPEC_BYTES} bytes", safety=True)]
         raw = path.read_bytes()
     except OSError as err:
         return None, [SpecProblem(display, 1, 1, (), f"cannot read file: {err.strerror or err}")]
