@@ -105,10 +105,17 @@ def _list(argv: list[str]) -> int:
     return list_main(argv)
 
 
+def _new(argv: list[str]) -> int:
+    from .new_cmd import new_main
+    return new_main(argv)
+
+
 COMMANDS: dict[str, Command] = {
-    "validate": Command("Check spec files (tasks, assets, robots, suites) against the schemas and each other.",
-                        "dojo validate specs/ my_pack/ --format json", _validate),
+    "validate": Command("Check spec files against the schemas and each other; --strict audits a task pack in full.",
+                        "dojo validate --strict my_pack/ --seeds 20 --junit report.xml", _validate),
     "list": Command("List the installed tasks, assets, robots or suites.", "dojo list tasks", _list),
+    "new": Command("Write a commented task skeleton (and its asset) into a task pack, ready to validate.",
+                   "dojo new task my_pack/my_task", _new),
     "compile": Command("Compile a suite's specs into content-addressed plans.",
                        "dojo compile suite=robodojo_sim_mini -j 2", _hydra("compile", "compile_task")),
     "show": Command("Render a plan or a task's scene from every camera to PNG (and USD).",

@@ -20,6 +20,9 @@ EXAMPLE = "dojo validate specs/ my_pack/ --format json\n  dojo validate         
 
 
 def validate_main(argv: list[str]) -> int:
+    if "--strict" in argv:  # a contribution's full audit: its own arguments (strict_cmd)
+        from .strict_cmd import strict_main
+        return strict_main(argv)
     parser = argparse.ArgumentParser(
         prog="dojo validate",
         description="Check spec files (tasks, assets, robots, suites) against the JSON Schemas, resolve their "
@@ -29,6 +32,9 @@ def validate_main(argv: list[str]) -> int:
     parser.add_argument("paths", nargs="*", type=Path,
                         help="spec files or folders (folders are searched for *.yaml); none: the built-in ones")
     parser.add_argument("--format", choices=("text", "json"), default="text", help="output format (default: text)")
+    parser.add_argument("--strict", action="store_true",
+                        help="also compile, simulate and run every task's expert, zero and random policies: the "
+                             "full audit of a task contribution (see dojo validate --strict --help)")
     try:
         args = parser.parse_args(argv)
     except SystemExit as stop:
