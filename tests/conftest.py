@@ -5,7 +5,7 @@ the choice is made here, before any of them, as the CLI makes it: EGL (Mesa's so
 GPU), else OSMesa, else none (a GPU machine without libEGL runs the physics and Warp tests).
 
 Tests read the videos that runs record with imageio, whose ffmpeg reader is started with a `preexec_fn` unless
-this variable is set (as `dojo.runtime.recorder.Mp4Writer` sets it for writing): in a test process where JAX's
+this variable is set (as `dojo.evaluation.recorder.Mp4Writer` sets it for writing): in a test process where JAX's
 threads already run, that is a fork of a multithreaded process running Python, which can deadlock.
 """
 

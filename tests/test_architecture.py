@@ -1,6 +1,7 @@
-"""Rules of the code base that a reviewer should not have to check by hand: no import cycle at module level, no
-engine built by hand outside its own backend package, and no task id as a literal in the product's code (a
-special case for one task is a missing general mechanism)."""
+"""Rules of the code base that a reviewer should not have to check by hand: the code is one `dojo/` tree whose
+import paths are its file paths, no import cycle at module level, no engine built by hand outside its own backend
+package, and no task id as a literal in the product's code (a special case for one task is a missing general
+mechanism)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from pathlib import Path
 from dojo.compiler.spec_library import SpecLibrary
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = {"compiler": "dojo.compiler", "runtime": "dojo.runtime", "backends": "dojo.backends",
-            "language": "dojo.language", "xpolicylab": "xpolicylab"}
+PACKAGES = {"dojo": "dojo", "xpolicylab": "xpolicylab"}
+# The concerns of the code base, one package each (dojo/<name>/); a new top-level folder is a design decision.
+CONCERNS = {"backends", "bench", "cli", "compiler", "datagen", "evaluation", "experts", "language", "launch",
+            "report", "strict"}
 ENGINES = ("MujocoBackend", "MjxBackend", "RealBackend")
 
 
@@ -48,6 +51,20 @@ def _module_level_imports(name: str, path: Path, known: dict[str, Path]) -> set[
                 deps.add(module)
                 deps.update(f"{module}.{a.name}" for a in n.names if f"{module}.{a.name}" in known)
     return {d for d in deps if d in known and d != name}
+
+
+def test_import_paths_are_file_paths():
+    """Every package under dojo/ is installed under its own path, and pyproject lists exactly those packages."""
+    import tomllib
+
+    import dojo
+
+    assert Path(dojo.__file__).resolve() == ROOT / "dojo" / "__init__.py"
+    folders = {p.parent for p in (ROOT / "dojo").rglob("__init__.py") if "__pycache__" not in p.parts}
+    assert {f.name for f in folders if f.parent == ROOT / "dojo"} == CONCERNS
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    expected = {".".join(f.relative_to(ROOT).parts) for f in folders} | {"dojo.specs", "dojo.assets", "xpolicylab"}
+    assert listed == expected
 
 
 def test_no_import_cycle_at_module_level():

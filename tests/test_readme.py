@@ -207,9 +207,9 @@ def test_readme_quick_start_runs_as_written_from_a_fresh_clone(tmp_path: Path) -
 
 def test_every_dojo_command_in_the_readme_parses() -> None:
     """Commands outside the quick start (GPU, long jobs) are not run here; their overrides must still compose."""
-    from dojo.runtime.bench_ray import split_arguments
-    from dojo.runtime.cli import COMMANDS, _jobs_flag, _what_word
-    from dojo.runtime.hydra_app import _register_spec_groups, check_overrides, overrides_of
+    from dojo.bench.ray_bench import split_arguments
+    from dojo.cli.main import COMMANDS, _jobs_flag, _what_word
+    from dojo.cli.hydra_app import _register_spec_groups, check_overrides, overrides_of
 
     hydra_commands = {"run", "compile", "show", "bench", "collect"}
     checked = 0

@@ -35,8 +35,8 @@ def run_installed(site: Path, *args: str, cwd: Path) -> subprocess.CompletedProc
 
 
 def test_modules_come_from_the_wheel(wheel_site: Path, tmp_path: Path) -> None:
-    code = ("import json, dojo.compiler, dojo.runtime, dojo.specs, dojo.assets, xpolicylab;"
-            "print(json.dumps([m.__file__ for m in (dojo.compiler, dojo.runtime, dojo.specs, dojo.assets, xpolicylab)]))")
+    code = ("import json, dojo.compiler, dojo.cli, dojo.specs, dojo.assets, xpolicylab;"
+            "print(json.dumps([m.__file__ for m in (dojo.compiler, dojo.cli, dojo.specs, dojo.assets, xpolicylab)]))")
     result = run_installed(wheel_site, "-c", code, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     for path in json.loads(result.stdout):
@@ -47,13 +47,13 @@ def test_installed_cli_validates_and_lists_the_builtin_specs(wheel_site: Path, t
     specs = wheel_site / "dojo" / "specs"
     assets = wheel_site / "dojo" / "assets"
     assert (specs / "schemas" / "task.schema.json").is_file()
-    result = run_installed(wheel_site, "-m", "dojo.runtime.cli", "validate", str(specs), str(assets), cwd=tmp_path)
+    result = run_installed(wheel_site, "-m", "dojo.cli.main", "validate", str(specs), str(assets), cwd=tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "all valid" in result.stdout
-    listed = run_installed(wheel_site, "-m", "dojo.runtime.cli", "list", "robots", "--format", "json", cwd=tmp_path)
+    listed = run_installed(wheel_site, "-m", "dojo.cli.main", "list", "robots", "--format", "json", cwd=tmp_path)
     assert listed.returncode == 0, listed.stderr
     assert len(json.loads(listed.stdout)) >= 3
-    config = run_installed(wheel_site, "-m", "dojo.runtime.cli", "show", "robot=arx_x5_bimanual", "--cfg", "job",
+    config = run_installed(wheel_site, "-m", "dojo.cli.main", "show", "robot=arx_x5_bimanual", "--cfg", "job",
                            cwd=tmp_path)
     assert config.returncode == 0 and "id: arx_x5_bimanual" in config.stdout, config.stderr
 

@@ -1,4 +1,4 @@
-"""Every predicate of backends/predicates.py on hand-built states: each batch holds positive and negative rows."""
+"""Every predicate of dojo/backends/predicates.py on hand-built states: each batch holds positive and negative rows."""
 
 from __future__ import annotations
 

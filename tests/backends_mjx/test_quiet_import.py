@@ -7,7 +7,7 @@ import sys
 
 
 def test_importing_the_mjx_backend_keeps_stdout_clean():
-    result = subprocess.run([sys.executable, "-c", "import dojo.backends.mjx.batch, dojo.backends.sim_bench"],
+    result = subprocess.run([sys.executable, "-c", "import dojo.backends.mjx.batch, dojo.bench.sim_bench"],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert result.stdout == ""

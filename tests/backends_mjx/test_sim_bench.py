@@ -13,7 +13,7 @@ import sys
 import pytest
 from conftest import CACHE_DIR, toy_plan
 
-from dojo.backends.sim_bench import bench_sim, split_batch
+from dojo.bench.sim_bench import bench_sim, split_batch
 from dojo.backends.mjx.bucket import make_buckets
 
 
@@ -45,7 +45,7 @@ def test_split_batch_is_proportional_and_complete():
 
 
 def _bench(*args: str, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "bench", "sim", "tasks=[stack_blocks]",
+    return subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "sim", "tasks=[stack_blocks]",
                            "episodes=1", *args], cwd=cwd, capture_output=True, text=True, timeout=600)
 
 
@@ -81,7 +81,7 @@ def test_dojo_bench_sim_refuses_mjx_modes_on_the_mujoco_backend(tmp_path):
 
 def test_streams_mode_is_asked_for_by_name_only():
     """`streams` runs MuJoCo Warp (NVIDIA GPUs): the default modes, which also run on a CPU, leave it out."""
-    from dojo.backends.sim_bench import _modes
+    from dojo.bench.sim_bench import _modes
 
     assert "streams" not in _modes("mjx", None)
     assert _modes("mjx", ["heterogeneous", "streams"]) == ("heterogeneous", "streams")

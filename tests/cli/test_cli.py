@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.cli import COMMANDS
+from dojo.cli.main import COMMANDS
 
 REPO = Path(__file__).resolve().parents[2]
 PACK = REPO / "tests" / "specs" / "pack"
 
 
 def dojo(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", *args], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "dojo.cli.main", *args], capture_output=True, text=True,
                             cwd=cwd, timeout=120)
     assert "Traceback" not in result.stderr, result.stderr
     return result
@@ -159,7 +159,7 @@ def test_a_misspelt_key_names_the_key_and_does_not_suggest_adding_it() -> None:
 
 
 def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
-    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", "doctor", "--format", "json"], cwd=tmp_path,
+    result = subprocess.run([sys.executable, "-m", "dojo.cli.main", "doctor", "--format", "json"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=120,
                             env={**os.environ, "DOJO_OUTPUTS": str(tmp_path / "results")})
     assert result.returncode == 0, result.stderr

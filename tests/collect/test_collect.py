@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dojo.runtime.collect import auto_horizon, write_horizons
+from dojo.datagen.collect import auto_horizon, write_horizons
 
 PACK = Path(__file__).resolve().parents[1] / "recording" / "pack"
 # dlc_test (training only), horizon_test (in horizon_suite) and open_test (evaluation only): one-step tasks.
@@ -25,7 +25,7 @@ SMALL = ["policy=zero", "width=64", "height=48", "progress=quiet"]
 
 def dojo(command: str, *args: str, cwd: Path, pack: Path = PACK) -> subprocess.CompletedProcess:
     env = dict(os.environ, DOJO_PLAN_CACHE=str(cwd / "plans"))
-    cmd = [sys.executable, "-m", "dojo.runtime.cli", command, f"packs=[{pack}]", *args]
+    cmd = [sys.executable, "-m", "dojo.cli.main", command, f"packs=[{pack}]", *args]
     return subprocess.run(cmd, check=False, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -151,8 +151,8 @@ def test_collect_dlc_training_only_task(tmp_path: Path) -> None:
     collection but are never scored (tests/runtime/test_episode.py)."""
     import h5py
 
-    from dojo.runtime.results_store import ResultsStore
-    from dojo.runtime.scoring import score_episodes
+    from dojo.evaluation.results_store import ResultsStore
+    from dojo.report.scoring import score_episodes
 
     out = tmp_path / "ds"
     args = ("task=dlc_test", "n=2", "cameras=[head]", "num_envs=1", f"out={out}")

@@ -21,7 +21,7 @@ SCRIPT = textwrap.dedent("""
     jax.devices()  # JAX's runtime threads are up: forking from here on is what JAX warns about
     from dojo.compiler.spec_library import SpecLibrary
     from dojo.compiler.suite_compile import compile_suite
-    from dojo.runtime.recorder import Mp4Writer
+    from dojo.evaluation.recorder import Mp4Writer
 
     library = SpecLibrary.load([Path(sys.argv[1])])
     suite = library.get("suite", "mini_test")

@@ -1,7 +1,7 @@
 """Plans for the expert tests: the first scene seeds of every built-in evaluated task, compiled once per session.
 
 They go to `$DOJO_PLAN_CACHE/validity` when that variable is set (a CI cache, or the slow run reusing the plans
-`python -m dojo.runtime.expert_validity` compiled), else to a session temporary folder.
+`python -m dojo.experts.validity` compiled), else to a session temporary folder.
 """
 
 from __future__ import annotations

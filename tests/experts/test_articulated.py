@@ -1,4 +1,4 @@
-"""The `open` and `close` skills (runtime/expert_articulated.py) on the articulated test tasks of `articulated_pack`:
+"""The `open` and `close` skills (dojo/experts/articulated.py) on the articulated test tasks of `articulated_pack`:
 a cabinet drawer pulled open by its handle (slide joint), a safe's door swung open and shut again (hinge).
 
 The oracle solves the first seeds on the `mujoco` backend; `zero` solves none (the safe task needs the door
@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from dojo.compiler.plan import Plan
 from dojo.compiler.spec_library import SpecLibrary
-from dojo.runtime.expert_articulated import articulation
-from dojo.runtime.expert_motion import Pose
-from dojo.runtime.expert_skills import SkillContext
-from dojo.runtime.expert_validity import plan_files, policies, run_policy
-from dojo.runtime.oracle import OraclePolicy
+from dojo.experts.articulated import articulation
+from dojo.experts.motion import Pose
+from dojo.experts.skills import SkillContext
+from dojo.experts.validity import plan_files, policies, run_policy
+from dojo.experts.oracle import OraclePolicy
 
 PACK = Path(__file__).parent / "articulated_pack"
 TASKS = ["open_drawer_test", "open_close_safe_test"]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 from dojo.compiler.plan import Plan
-from dojo.runtime.expert_motion import ArmPlanner
-from dojo.runtime.expert_validity import plan_files
+from dojo.experts.motion import ArmPlanner
+from dojo.experts.validity import plan_files
 
 
 def _planner(library, plan_cache) -> tuple[ArmPlanner, np.ndarray]:

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from dojo.backends.mujoco.backend import MujocoBackend
 from dojo.compiler.plan import Plan
-from dojo.runtime.expert_validity import plan_files
-from dojo.runtime.oracle import OraclePolicy
-from dojo.runtime.policy_link import open_policy
+from dojo.experts.validity import plan_files
+from dojo.experts.oracle import OraclePolicy
+from dojo.evaluation.policy_link import open_policy
 
 
 @pytest.fixture(scope="module")

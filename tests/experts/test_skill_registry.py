@@ -11,9 +11,9 @@ import pytest
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.spec_schema import schema_dir
 from dojo.language import skills
-from dojo.runtime.expert_skills import push_up
-from dojo.runtime.expert_validity import plan_files, run_policy
-from dojo.runtime.oracle import OraclePolicy
+from dojo.experts.skills import push_up
+from dojo.experts.validity import plan_files, run_policy
+from dojo.experts.oracle import OraclePolicy
 
 TEST_PACK = Path(__file__).parents[1] / "specs" / "pack"
 TASK = """kind: task

@@ -2,7 +2,7 @@
 
 CI runs a reduced check: the expert on the first seeds of every task, and `zero` on every task
 over a short horizon. The full table (50 seeds, expert / zero / random) is `-m slow`; it prints the table that
-`python -m dojo.runtime.expert_validity` prints too. No timing is asserted anywhere.
+`python -m dojo.experts.validity` prints too. No timing is asserted anywhere.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 
 import pytest
-from dojo.runtime.expert_validity import (
+from dojo.experts.validity import (
     SUCCESS_BAR,
     plan_files,
     policies,

@@ -23,7 +23,7 @@ from dojo.backends.real.realtime_sim import RealTimeSim
 from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.compiler.robot_emit import build_robot_world
 from dojo.compiler.spec_library import SpecLibrary
-from dojo.runtime.run_dir import results_root
+from dojo.evaluation.run_dir import results_root
 
 if TYPE_CHECKING:  # python-can (the `real` extra) is needed only by the tests that start an emulator
     from dojo.backends.real.piper_emulator import PiperCanEmulator

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dojo.runtime.evaluate import QueuedEpisode, _Slot, _with_episode
-from dojo.runtime.recorder import overlay, record_cameras, tile
-from dojo.runtime.results_store import ResultsStore
+from dojo.evaluation.evaluate import QueuedEpisode, _Slot, _with_episode
+from dojo.evaluation.recorder import overlay, record_cameras, tile
+from dojo.evaluation.results_store import ResultsStore
 
 PACK = Path(__file__).resolve().parent / "pack"
 CAMERAS = ["head", "left_wrist", "right_wrist"]
@@ -58,7 +58,7 @@ def test_run_record_head_writes_playable_video_and_replayable_trajectory(tmp_pat
     from xpolicylab.policies import load_policy
 
     env = dict(os.environ, DOJO_PLAN_CACHE=str(tmp_path / "plans"))
-    cmd = [sys.executable, "-m", "dojo.runtime.cli", "run", f"packs=[{PACK}]", "suite=short_suite", "episodes=1",
+    cmd = [sys.executable, "-m", "dojo.cli.main", "run", f"packs=[{PACK}]", "suite=short_suite", "episodes=1",
            "num_envs=1", "policy=random", "width=64", "height=48", "record=head", "progress=quiet",
            f"results={tmp_path / 'r.sqlite'}"]
     result = subprocess.run(cmd, check=False, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)

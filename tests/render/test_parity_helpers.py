@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from dojo.backends.mjx import render_parity as P
 from dojo.backends.mjx.render import CAMERAS
-from dojo.backends.render_bench import STANDARD_SIZES, _arm_mask, _split, render_grid
+from dojo.bench.render_bench import STANDARD_SIZES, _arm_mask, _split, render_grid
 
 
 def test_ssim_and_mae_separate_same_from_different():

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.results_store import ResultsStore
+from dojo.evaluation.results_store import ResultsStore
 
 PACK = Path(__file__).resolve().parents[1] / "specs" / "pack"
 BASE = ["run", f"packs=[{PACK}]", "suite=mini_test", "episodes=3", "num_envs=2", "progress=quiet"]
 
 
 def dojo(*args: str, cwd: Path, **kwargs) -> subprocess.Popen | subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "dojo.runtime.cli", *args]
+    cmd = [sys.executable, "-m", "dojo.cli.main", *args]
     env = dict(os.environ, DOJO_PLAN_CACHE=str(cwd / "plan-cache"))
     if kwargs.pop("background", False):
         return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -183,7 +183,7 @@ def test_a_run_says_what_it_renders_before_it_starts(tmp_path: Path) -> None:
 
 
 def _safe(path: Path) -> str:
-    from dojo.runtime.run_dir import run_key
+    from dojo.evaluation.run_dir import run_key
 
     return run_key([f"packs=[{path}]"]).split("=", 1)[1]
 
@@ -213,7 +213,7 @@ RECORDING_PACK = Path(__file__).resolve().parents[1] / "recording" / "pack"
 @pytest.mark.slow
 def test_oracle_runs_on_mjx_and_agrees_with_mujoco(tmp_path: Path) -> None:
     """The same suite, seeds and scripted policy on both backends (minutes of XLA compilation on a CPU)."""
-    from dojo.runtime.backend_agreement import main as agreement
+    from dojo.bench.backend_agreement import main as agreement
 
     common = ["run", f"packs=[{RECORDING_PACK}]", "suite=short_suite", "num_envs=1", "progress=quiet",
               "record=head", "width=160", "height=120"]

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from dojo.runtime.results_store import ResultsStore
+from dojo.evaluation.results_store import ResultsStore
 
 PACK = Path(__file__).resolve().parents[1] / "specs" / "pack"
 
@@ -23,7 +23,7 @@ def test_hidden_seed_set_is_evaluated_and_verified(tmp_path: Path) -> None:
     secrets.write_text(json.dumps({"lab_secret": [911]}))
     env = dict(os.environ, DOJO_PLAN_CACHE=str(tmp_path / "plans"))
     result = subprocess.run(
-        [sys.executable, "-m", "dojo.runtime.cli", "run", f"packs=[{pack}]", "suite=mini_test", "episodes=1",
+        [sys.executable, "-m", "dojo.cli.main", "run", f"packs=[{pack}]", "suite=mini_test", "episodes=1",
          "seeds=[0]", "num_envs=2", "progress=quiet", f"hidden_seeds={secrets}", f"results={tmp_path / 'r.sqlite'}",
          f"report={tmp_path / 'report.json'}"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr

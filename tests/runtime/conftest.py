@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from dojo.runtime.episode import EpisodeResult
+from dojo.evaluation.episode import EpisodeResult
 
 RowFactory = Callable[..., EpisodeResult]
 

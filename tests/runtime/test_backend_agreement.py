@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dojo.runtime.backend_agreement import compare, main, overall
-from dojo.runtime.results_store import ResultsStore
+from dojo.bench.backend_agreement import compare, main, overall
+from dojo.evaluation.results_store import ResultsStore
 
 
 def _store(path: Path, make_row, outcomes: dict[tuple[str, int], tuple[bool, float]], run_id: str) -> Path:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from xpolicylab.model import PolicyMetadata
 
-from dojo.runtime.camera_budget import budget_message, image_size
+from dojo.evaluation.camera_budget import budget_message, image_size
 
 CAMERAS = ("head", "left_wrist", "right_wrist")
 

@@ -28,7 +28,7 @@ def test_training_only_dimensions_are_recorded_but_never_scored(make_row, make_t
     """DLC episodes are rows (`dojo collect` resumes from them), but no score, report or progress line counts
     them: they are not scored dimensions of the taxonomy, and scoring either refuses them or leaves them out."""
     from dojo.compiler.taxonomy import builtin_taxonomy
-    from dojo.runtime.scoring import ScoringError, score_episodes
+    from dojo.report.scoring import ScoringError, score_episodes
 
     taxonomy = builtin_taxonomy()
     assert taxonomy.training_only == ("dlc",) and not set(taxonomy.training_only) & set(taxonomy.scored)

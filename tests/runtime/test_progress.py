@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from dojo.runtime.progress import Progress
+from dojo.evaluation.progress import Progress
 
 
 class FakeClock:

@@ -11,9 +11,9 @@ from html.parser import HTMLParser
 import pytest
 
 from dojo.compiler.taxonomy import builtin_taxonomy
-from dojo.runtime.report import build_report, load_rows, render_html, report_main, write_report
-from dojo.runtime.results_store import STORE_FILENAME, ResultsStore
-from dojo.runtime.scoring import score_episodes
+from dojo.report.make_report import build_report, load_rows, render_html, report_main, write_report
+from dojo.evaluation.results_store import STORE_FILENAME, ResultsStore
+from dojo.report.scoring import score_episodes
 
 DIMENSIONS = builtin_taxonomy().scored
 

@@ -12,8 +12,8 @@ from contextlib import closing
 
 import pytest
 
-from dojo.runtime.episode import EpisodeKey, EpisodeResult
-from dojo.runtime.results_store import STORE_FILENAME, ResultsStore, StoreError, resolve_store_path
+from dojo.evaluation.episode import EpisodeKey, EpisodeResult
+from dojo.evaluation.results_store import STORE_FILENAME, ResultsStore, StoreError, resolve_store_path
 
 
 def test_round_trip_keeps_every_field(tmp_path, make_row):
@@ -103,8 +103,8 @@ def test_resolve_store_path_accepts_a_run_folder(tmp_path):
 # prints "<index> <inserted>". Results are a pure function of the episode index, like a deterministic policy.
 _WRITER = textwrap.dedent("""
     import sys, time
-    from dojo.runtime.episode import EpisodeResult
-    from dojo.runtime.results_store import ResultsStore
+    from dojo.evaluation.episode import EpisodeResult
+    from dojo.evaluation.results_store import ResultsStore
 
     def result(i):
         return EpisodeResult(

@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from dojo.runtime.run_dir import DEFAULT_KEY, results_root, run_key
+from dojo.evaluation.run_dir import DEFAULT_KEY, results_root, run_key
 
 SAFE = re.compile(r"^[A-Za-z0-9._=-]+$")
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from dojo.runtime.scoring import Replicate, ScoringError, relative_drop, score_episodes, stat
+from dojo.report.scoring import Replicate, ScoringError, relative_drop, score_episodes, stat
 
 
 @pytest.fixture

@@ -14,8 +14,8 @@ from dojo.backends.predicate_program import resolve_program
 from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import compile_plan
 from dojo.compiler.spec_library import SpecLibrary
-from dojo.runtime.report import build_report
-from dojo.runtime.results_store import SCHEMA_VERSION, ResultsStore
+from dojo.report.make_report import build_report
+from dojo.evaluation.results_store import SCHEMA_VERSION, ResultsStore
 
 PACK = Path(__file__).parents[1] / "specs" / "pack"
 

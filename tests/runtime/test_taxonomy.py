@@ -10,7 +10,7 @@ import pytest
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import suite_episodes
 from dojo.compiler.taxonomy import builtin_taxonomy, taxonomy_of
-from dojo.runtime.scoring import score_episodes
+from dojo.report.scoring import score_episodes
 
 PACK = Path(__file__).parents[1] / "specs" / "pack"
 TAXONOMY = """kind: taxonomy

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from dojo.runtime.verification import (
+from dojo.evaluation.verification import (
     ALPHA,
     NOT_EVALUATED,
     UNVERIFIED,

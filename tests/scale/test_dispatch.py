@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.dispatch import EpisodeDispatcher, episode_key, longest_first
-from dojo.runtime.episode import EpisodeResult
-from dojo.runtime.evaluate import QueuedEpisode
-from dojo.runtime.launch_ray import RayOptions, local_plan_paths, worker_count
-from dojo.runtime.policy_link import policy_config_for
-from dojo.runtime.run_dir import run_key
+from dojo.launch.dispatch import EpisodeDispatcher, episode_key, longest_first
+from dojo.evaluation.episode import EpisodeResult
+from dojo.evaluation.evaluate import QueuedEpisode
+from dojo.launch.ray_launcher import RayOptions, local_plan_paths, worker_count
+from dojo.evaluation.policy_link import policy_config_for
+from dojo.evaluation.run_dir import run_key
 
 
 def item(i: int) -> QueuedEpisode:

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.launch_ray import start_local_cluster
-from dojo.runtime.results_store import ResultsStore
+from dojo.launch.ray_launcher import start_local_cluster
+from dojo.evaluation.results_store import ResultsStore
 
 ray = pytest.importorskip("ray", reason="the Ray launcher needs the ray extra: pip install 'robodojo[ray]'")
 
@@ -52,7 +52,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]
 
 def dojo(args: list[str], env: dict[str, str], cwd: Path, background: bool = False
          ) -> subprocess.CompletedProcess | subprocess.Popen:
-    cmd = [sys.executable, "-m", "dojo.runtime.cli", *args]
+    cmd = [sys.executable, "-m", "dojo.cli.main", *args]
     if background:
         return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)

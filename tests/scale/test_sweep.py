@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from dojo.runtime.results_store import ResultsStore
+from dojo.evaluation.results_store import ResultsStore
 
 pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="needs the sweep extra: hydra-joblib-launcher")
 
@@ -24,7 +24,7 @@ BASE = ["run", "-m", "hydra/launcher=joblib", f"packs=[{PACK}]", "suite=mini_tes
 
 def dojo(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     env = dict(os.environ, DOJO_PLAN_CACHE=str(cwd / "plans"), DOJO_OUTPUTS=str(cwd / "outputs"))
-    return subprocess.run([sys.executable, "-m", "dojo.runtime.cli", *args], cwd=cwd, env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "dojo.cli.main", *args], cwd=cwd, env=env, capture_output=True,
                           text=True, timeout=600)
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from dojo.compiler.pack_limits import PackLimits
-from dojo.runtime.strict_checks import TASK_CHECKS, Audit, Context
-from dojo.runtime.strict_work import EpisodeRecord, PlanRecord
+from dojo.strict.checks import TASK_CHECKS, Audit, Context
+from dojo.strict.work import EpisodeRecord, PlanRecord
 
 CHECK = {c.name: c for c in TASK_CHECKS}
 CTX = Context(library=None, limits=PackLimits(), seeds=20)  # these checks read only their row

@@ -17,8 +17,8 @@ from xml.etree import ElementTree as ET
 
 import pytest
 
-from dojo.runtime.new_cmd import new_main
-from dojo.runtime.validate_cmd import validate_main
+from dojo.cli.new_cmd import new_main
+from dojo.cli.validate_cmd import validate_main
 
 REPO = Path(__file__).resolve().parents[2]
 BROKEN = REPO / "tests" / "strict" / "broken_pack"
@@ -38,7 +38,7 @@ PLANTED = {  # task -> (the check that must fail, words its message must say)
 
 
 def dojo(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    result = subprocess.run([sys.executable, "-m", "dojo.runtime.cli", *args], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "dojo.cli.main", *args], capture_output=True, text=True,
                             cwd=cwd, timeout=900, env={**os.environ, "COLUMNS": "200"})
     assert "Traceback" not in result.stderr, result.stderr
     return result

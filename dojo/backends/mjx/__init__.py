@@ -1,0 +1,51 @@
+"""The batched MJX backend: heterogeneous parallelism over buckets of structurally identical models.
+
+- `pad`: one task's plans rewritten to share one structure (clutter slots parked, lights/textures/names canonical);
+- `bucket`: the structural signature MJX compiles against, buckets and their per-member varying model fields;
+- `batch`: `Engine`, every bucket's batch stepped in one jitted tick (sub-steps, resets, refills, hooks);
+- `backend`: `MjxBackend`, the `Backend` interface with actions, predicates and proprioception on the device;
+- `parity`: `parity_report` / `format_table`, agreement with the `mujoco` backend;
+- `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`);
+- `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from dojo.backends.registry import BackendOptions
+    from dojo.backends.mjx.backend import MjxBackend
+
+# MJX prints "Failed to import warp: ..." to stdout when MuJoCo Warp is absent (every CPU-only machine), which
+# would break the one JSON line `dojo bench` prints; the message goes to the log instead.
+with contextlib.redirect_stdout(io.StringIO()) as _printed:
+    from mujoco import mjx as _mjx  # noqa: F401
+if _printed.getvalue().strip():
+    logging.getLogger(__name__).debug("mujoco.mjx: %s", _printed.getvalue().strip())
+
+
+def make(options: BackendOptions) -> MjxBackend:
+    """The registry's constructor (`dojo.backends.registry`): setting `impl` (`jax`, `warp`, or auto). Every plan
+    of the run is loaded up front (`preload`), so the run compiles once."""
+    from pathlib import Path
+
+    import jax
+
+    from dojo.compiler.plan import Plan
+
+    from dojo.backends.mjx.backend import MjxBackend
+
+    if jax.default_backend() == "cpu":
+        logging.getLogger(__name__).warning(
+            "backend=mjx on a CPU: expect minutes of compilation and seconds per step (every contact candidate is "
+            "simulated); backend=mujoco is the CPU backend")
+    impl = options.settings.get("impl")
+    backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
+                         plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
+                         height=options.height, depth=options.depth)
+    backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
+    return backend

@@ -1,0 +1,469 @@
+"""The batched MJX backend: the `Backend` interface over `Engine`, with actions, predicates and proprioception
+computed on the device inside the one jitted tick.
+
+Slots and rows. `load(plans)` groups the plans into buckets (`make_buckets`, over every plan the backend knows:
+those given to `preload` and to `load`) and gives each bucket one row per slot that starts in it. A slot is a
+(bucket, row) pair; refilling it with a plan of the same bucket only changes the row's member index, and with a
+plan of another bucket it moves to a row of that bucket that no slot uses. Neither recompiles. A plan the
+backend has never seen, or a bucket without a free row, is an error that names the fix (`preload` the queue).
+
+Per tick and bucket, traced once: actions in every mode (a per-env mode id picks `joint`, `delta_joint`, `ee` or
+`delta_ee`, so one program serves all four) become actuator controls with `dojo.backends.actions`; the ee modes
+solve the same damped-least-squares IK as the CPU backend, batched on the device with MJX kinematics and
+Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no env of the bucket asks for ee);
+physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
+and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
+backend's `RobotIndex.proprioception`. Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
+environment, so this backend runs `impl='jax'` (`auto` too, with a logged reason, also on an NVIDIA GPU); the `warp`
+implementation serves `Engine` and `StreamEngine` (physics, bench).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from dojo.backends import actions as A
+from dojo.backends.base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, EpisodeDone, Observation, StepResult, resolve_ids
+from dojo.backends.mujoco.kinematics import RobotIndex
+from dojo.backends.predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
+from dojo.backends.predicate_state import BODY, SITE, StateIndex, gather_state
+from dojo.backends.rotations import mat_to_quat
+from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
+from dojo.backends.mjx.bucket import Bucket, make_buckets
+from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
+
+log = logging.getLogger(__name__)
+WARP_PENDING = ("predicates read per-environment contacts, which MJX's warp implementation keeps in one pool for "
+                "the whole batch")
+"""Why the backend does not run `impl='warp'` yet (issue 22): the physics bench does."""
+
+
+def backend_impl(requested: str | None) -> str:
+    """The implementation the backend runs: `jax`, also for `auto` on an NVIDIA GPU (logged with the reason);
+    an explicit `warp` is refused with it. `dojo bench sim` measures the warp implementation's physics."""
+    if requested in (None, "", "auto"):
+        if choose_impl("auto") == "warp":
+            log.warning("mjx backend: impl=auto runs 'jax', not 'warp': %s", WARP_PENDING)
+        return "jax"
+    if choose_impl(requested) != "jax":
+        raise ValueError(f"the mjx backend cannot run impl='warp' yet: {WARP_PENDING}; use impl=jax or auto")
+    return "jax"
+
+
+MODES = ("joint", "delta_joint", "ee", "delta_ee")
+DELTA_JOINT, EE, DELTA_EE = (MODES.index(m) for m in ("delta_joint", "ee", "delta_ee"))  # ids the tick compares
+"""Action modes by the id the tick receives per env."""
+INPUT_WIDTH = 2 * A.EE_PER_ARM
+"""Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
+
+
+@dataclass(frozen=True)
+class _Program:
+    """A bucket's predicate program: one layout and state index for all members, params per member."""
+
+    layout: ProgramLayout
+    index: StateIndex
+    params: dict[str, np.ndarray]  # [members, ...]
+
+
+def _bucket_program(bucket: Bucket) -> _Program:
+    """Compile every member's program against its own plan and move the indices into the padded model.
+
+    Padding appends slot bodies after everything else, so bodies, sites and joints a program names keep their
+    ids; the extra geoms map to "not tracked". Checked by name, and all members must share layout and index.
+    """
+    padded = bucket.model
+    layouts, indices, params = set(), set(), []
+    for member in bucket.members:
+        source = member.plan.model()
+        compiled = compile_program(member.plan, source)
+        index = compiled.index
+        for kind, ident in zip(index.frame_kind, index.frame_id):
+            obj = {BODY: mujoco.mjtObj.mjOBJ_BODY, SITE: mujoco.mjtObj.mjOBJ_SITE}.get(kind)
+            if obj is not None and mujoco.mj_id2name(source, obj, ident) != mujoco.mj_id2name(padded, obj, ident):
+                raise ValueError(f"bucket {bucket.key}: padding moved frame {ident} of plan {member.plan.hash[:12]}")
+        extra = (index.n_atoms,) * (padded.ngeom - source.ngeom)
+        indices.add(replace(index, geom_atom=index.geom_atom + extra))
+        layouts.add(compiled.layout)
+        params.append(compiled.params)
+    if len(layouts) != 1 or len(indices) != 1:
+        raise ValueError(f"bucket {bucket.key}: members compile to different predicate programs")
+    return _Program(layouts.pop(), indices.pop(), stack_params(params))
+
+
+class _DeviceHooks(Hooks):
+    """Actions, predicates and proprioception inside the tick (see module docstring)."""
+
+    forward = True
+
+    def __init__(self, programs: dict[str, _Program], robots: dict[str, RobotIndex]):
+        self.programs, self.robots = programs, robots
+
+    def init_extra(self, arr: BucketArrays) -> Tree:
+        return init_memory(jnp, self.programs[arr.bucket.key].layout, arr.size)
+
+    def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
+        actions, mode = inputs
+        robot = self.robots[arr.bucket.key]
+        q_arm = data.qpos[:, robot.qpos_adr]
+        joint_dim = A.action_dim("joint", robot.limits.joints_per_arm)
+        q_now = jnp.where((mode == DELTA_JOINT)[:, None, None], q_arm, 0.0)  # absolute rows add 0
+        q, grip, clipped = A.joint_targets(jnp, actions[:, :joint_dim], q_now, robot.limits, delta=True)
+        is_ee = (mode == EE) | (mode == DELTA_EE)
+        q_ee, grip_ee, clipped_ee = jax.lax.cond(
+            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE),
+            lambda: (q, grip, clipped))
+        q = jnp.where(is_ee[:, None, None], q_ee, q)
+        grip = jnp.where(is_ee[:, None], grip_ee, grip)
+        clipped = jnp.where(is_ee, clipped_ee, clipped)
+        ctrl = data.ctrl.at[:, robot.actuators].set(A.to_ctrl(jnp, q, grip, robot.limits.max_width))
+        return ctrl, clipped
+
+    def observe(self, arr: BucketArrays, m: Tree, data: Tree, memory: Tree, member: jax.Array, reset: jax.Array,
+                stepping: jax.Array, clipped: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
+        program, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
+        params = {k: jnp.asarray(v)[member] for k, v in program.params.items()}
+        c = data.contact
+        state = gather_state(jnp, program.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
+                             data.site_xmat, data.qpos, c.geom1, c.geom2, c.dist)
+        new_memory, out = program_step(jnp, program.layout, state, params, memory, steps)
+        memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
+                              new_memory, memory)
+        return memory, {"success": out.success, "score": out.score, "stage_step": out.stage_step,
+                        "clipped": clipped, **_proprioception(robot, data)}
+
+
+def _ee_in_base(robot: RobotIndex, d: Tree) -> tuple[jax.Array, jax.Array]:
+    """End-effector positions [..., 2, 3] and rotations [..., 2, 3, 3] in the arms' base frames (batched or one
+    env), as `RobotIndex.ee_pose` computes them on the CPU."""
+    base_r = d.xmat[..., robot.bases, :, :]
+    world_r = d.site_xmat[..., robot.ee_sites, :, :]
+    pos = jnp.einsum("...aji,...aj->...ai", base_r, d.site_xpos[..., robot.ee_sites, :] - d.xpos[..., robot.bases, :])
+    return pos, jnp.swapaxes(base_r, -1, -2) @ world_r
+
+
+def _ee_targets(arr: BucketArrays, robot: RobotIndex, m: Tree, data: Tree, actions: jax.Array, delta: jax.Array
+                ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`ee` / `delta_ee` rows -> arm joint targets [B, 2, J] by batched DLS IK from the measured joints, grippers
+    [B, 2] and clipped counts [B]; `delta` [B] marks the delta_ee rows."""
+    pos_now, rot_now = _ee_in_base(robot, data)
+    quat_now = mat_to_quat(jnp, rot_now)
+    quat_now = quat_now * jnp.where(quat_now[..., :1] < 0, -1.0, 1.0)
+    absolute = A.ee_targets(jnp, actions, pos_now, quat_now, robot.limits, delta=False)
+    relative = A.ee_targets(jnp, actions, pos_now, quat_now, robot.limits, delta=True)
+    pos, rot, grip, clipped = (jnp.where(delta.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+                               for a, b in zip(absolute, relative))
+    lo, hi = jnp.asarray(robot.limits.joint_lo), jnp.asarray(robot.limits.joint_hi)
+    site_body = jnp.asarray(arr.bucket.model.site_bodyid[robot.ee_sites])
+
+    def solve(m_env: Tree, d_env: Tree, target_pos: jax.Array, target_rot: jax.Array) -> jax.Array:
+        def fk(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+            d = mjx.com_pos(m_env, mjx.kinematics(m_env, d_env.replace(qpos=d_env.qpos.at[robot.qpos_adr].set(q))))
+            p, r = _ee_in_base(robot, d)
+            base_r = d.xmat[robot.bases]
+            jacs = []
+            for arm in range(2):
+                jacp, jacr = mjx.jac(m_env, d, d.site_xpos[robot.ee_sites[arm]], site_body[arm])
+                cols = robot.dof_adr[arm]
+                jacs.append(jnp.concatenate([base_r[arm].T @ jacp[cols].T, base_r[arm].T @ jacr[cols].T]))
+            return p, r, jnp.stack(jacs)
+
+        step = lambda _, q: A.ik_iteration(jnp, fk, q, target_pos, target_rot, lo, hi)[0]
+        return jax.lax.fori_loop(0, A.IK_ITERATIONS, step, d_env.qpos[robot.qpos_adr])
+
+    q = jax.vmap(solve, in_axes=(arr.in_axes, 0, 0, 0))(m, data, pos, rot)
+    return q, grip, clipped
+
+
+def _proprioception(robot: RobotIndex, d: Tree) -> dict[str, jax.Array]:
+    """`RobotIndex.proprioception` for a batch of MJX data (float32, [B, ...])."""
+    width = robot.limits.max_width
+    grip = jnp.clip(d.ten_length[:, robot.tendons] / width, 0.0, 1.0)
+    pos, rot = _ee_in_base(robot, d)
+    quat = mat_to_quat(jnp, rot)
+    quat = quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
+    arm_q, arm_v = d.qpos[:, robot.qpos_adr], d.qvel[:, robot.dof_adr]
+    grip_v = d.ten_velocity[:, robot.tendons] / width
+    return {"joint_pos": jnp.concatenate([arm_q, grip[..., None]], -1).reshape(arm_q.shape[0], -1),
+            "joint_vel": jnp.concatenate([arm_v, grip_v[..., None]], -1).reshape(arm_q.shape[0], -1),
+            "ee_pose": jnp.concatenate([pos, quat], -1), "gripper": grip}
+
+
+@dataclass
+class _Slot:
+    plan: Any
+    bucket: int
+    row: int
+    step: int = 0
+    done: bool = False
+    end_reason: str | None = None
+    success: bool = False
+    score: float = 0.0
+    stage_times: dict[str, int | None] = field(default_factory=dict)
+    clipped_total: int = 0
+
+
+class MjxBackend(Backend):
+    """Batched MJX backend (`impl` 'jax'; see module docstring for 'warp'), images from the host renderer."""
+
+    name = "mjx"
+
+    def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
+                 plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
+                 height: int = 480, depth: bool = False) -> None:
+        """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
+        layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
+        `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
+        model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots."""
+        enable_compilation_cache(cache_dir)
+        self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
+        self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
+        self._renderers: list[CpuRenderer] = []
+        self.impl = backend_impl(impl)
+        log.info("mjx backend: %s", describe_impl(self.impl))
+        self._known: dict[str, Any] = {}
+        self._slots: list[_Slot] = []
+        self._engine: Engine | None = None
+        self._buckets: list[Bucket] = []
+        self._member: dict[str, tuple[int, int]] = {}
+        self._rows: list[list[int | None]] = []  # per bucket: row -> slot
+        self._members: list[np.ndarray] = []
+        self._joints_per_arm = 0
+
+    @property
+    def num_envs(self) -> int:
+        return len(self._slots)
+
+    def preload(self, plans: Sequence[Any]) -> None:
+        """Make plans known before `load`, so that refilling slots with them later compiles nothing."""
+        self._known.update({p.hash: p for p in plans})
+
+    def load(self, plans: Sequence[Any]) -> None:
+        """Start one slot per plan. Every bucket of every known plan (`preload` and these) gets rows: as many as
+        its plans could ever occupy at once (its known plans, at most one per slot), so that any refill finds a
+        free row in its bucket and the program compiled now serves the whole run."""
+        self.preload(plans)
+        if len({p.embodiment for p in self._known.values()}) > 1:
+            raise ValueError("one backend runs one embodiment (action layout)")
+        self._buckets = make_buckets(list(self._known.values()))
+        self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
+        self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
+                         for b in self._buckets for m in b.members}
+        self._rows = [[] for _ in self._buckets]
+        self._slots = []
+        for s, plan in enumerate(plans):
+            k, _ = self._member[plan.hash]
+            self._slots.append(_Slot(plan, k, len(self._rows[k])))
+            self._rows[k].append(s)
+        for k, bucket in enumerate(self._buckets):
+            capacity = max(len(self._rows[k]), min(len(plans), len(bucket.members)))
+            self._rows[k] += [None] * (capacity - len(self._rows[k]))
+        self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
+                                    np.int32) for rows in self._rows]
+        self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
+        hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
+                             {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets})
+        example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
+        self.close()
+        if self.render_config is not None:
+            self._renderers = [CpuRenderer([m.model for m in b.members], self.render_config) for b in self._buckets]
+        self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example)
+        self.reset()
+
+    def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
+        if plan.hash not in self._member:
+            raise ValueError(f"plan {plan.hash[:12]} ({plan.task}) was not given to preload/load; refilling with "
+                             "it would need a new compilation")
+        k, _ = self._member[plan.hash]
+        if k == slot.bucket:
+            return k, slot.row
+        free = [r for r, s in enumerate(self._rows[k]) if s is None]
+        if not free:
+            raise ValueError(f"no free row in bucket {self._buckets[k].key} for plan {plan.hash[:12]}: load started "
+                             f"{len(self._rows[k])} slots in it")
+        return k, free[0]
+
+    def reset(self, env_ids: Sequence[int] | None = None, plans: Sequence[Any] | None = None) -> list[Observation]:
+        ids = resolve_ids(env_ids, self.num_envs)
+        if plans is not None and len(plans) != ids.size:
+            raise ValueError(f"reset got {len(plans)} plans for {ids.size} env_ids")
+        for j, i in enumerate(ids):
+            slot = self._slots[i]
+            if plans is not None:
+                k, row = self._row_for(slot, plans[j])
+                self._rows[slot.bucket][slot.row] = None
+                slot.plan, slot.bucket, slot.row = plans[j], k, row
+                self._rows[k][row] = int(i)
+                self._members[k][row] = self._member[slot.plan.hash][1]
+            self._slots[i] = _Slot(slot.plan, slot.bucket, slot.row)
+        resets = [np.zeros(len(r), bool) for r in self._rows]
+        for i in ids:
+            resets[self._slots[i].bucket][self._slots[i].row] = True
+        outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
+                             [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows],
+                             [np.zeros(len(r), np.int32) for r in self._rows])
+        return self._observations(ids, outputs)
+
+    def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
+              modes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+        steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
+                 for rows in self._rows]
+        out = self._engine.tick(self._members, resets, stepping, list(zip(actions, modes)), steps)
+        return jax.device_get(out)
+
+    def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
+             observe: Sequence[int] | None = None) -> StepResult:
+        ids = resolve_ids(env_ids, self.num_envs)
+        slots = [self._slots[i] for i in ids]
+        ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
+        if ended:
+            raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
+        if mode not in MODES:
+            raise ValueError(f"unknown action mode {mode!r}; choose one of {MODES}")
+        dim = A.action_dim(mode, self._joints_per_arm)
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (ids.size, dim):
+            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {dim}), got "
+                             f"{actions.shape}")
+        bad = A.nonfinite(np, actions)
+        rows_a = [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows]
+        stepping = [np.zeros(len(r), bool) for r in self._rows]
+        modes = [np.full(len(r), MODES.index(mode), np.int32) for r in self._rows]
+        for k, slot in enumerate(slots):
+            if not bad[k]:
+                rows_a[slot.bucket][slot.row, :dim] = actions[k]
+                stepping[slot.bucket][slot.row] = True
+        outputs = self._tick([np.zeros(len(r), bool) for r in self._rows], stepping, rows_a, modes)
+        clipped = np.zeros(ids.size, np.int32)
+        for k, slot in enumerate(slots):
+            if bad[k]:
+                slot.done, slot.end_reason, slot.success = True, END_NONFINITE, False
+                continue
+            out = {name: v[slot.row] for name, v in outputs[slot.bucket].items()}
+            slot.step += 1
+            clipped[k] = int(out["clipped"])
+            slot.clipped_total += clipped[k]
+            slot.success, slot.score = bool(out["success"]), float(out["score"])
+            names = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout.stage_names
+            slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(names, out["stage_step"])}
+            if slot.success:
+                slot.done, slot.end_reason = True, END_SUCCESS
+            elif slot.step >= slot.plan.horizon:
+                slot.done, slot.end_reason = True, END_HORIZON
+        return StepResult(
+            env_ids=ids, obs=self._observations(ids, outputs, observe=observe),
+            success=np.asarray([s.success for s in slots], bool),
+            score=np.asarray([s.score for s in slots], np.float32),
+            done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
+            stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
+            clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32))
+
+    def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
+                      observe: Sequence[int] | None = None) -> list[Observation]:
+        """Observations of slots `ids`; images (when the backend has cameras) only for those in `observe` (all
+        when None), rendered per bucket in one call."""
+        slots = [self._slots[i] for i in ids]
+        obs = [self._observation(s, outputs) for s in slots]
+        fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+
+        def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
+            """One device-to-host copy of a bucket's qpos (and qvel when privileged) per call."""
+            if bucket not in fetched:
+                data = self._engine.data[bucket]
+                fetched[bucket] = (np.asarray(data.qpos, np.float64),
+                                   np.asarray(data.qvel, np.float64) if self.privileged else None)
+            return fetched[bucket]
+
+        if self.render_config is not None:
+            wanted = None if observe is None else {int(i) for i in observe}
+            for k, renderer in enumerate(self._renderers):
+                picked = [(o, s) for i, o, s in zip(ids, obs, slots)
+                          if s.bucket == k and (wanted is None or int(i) in wanted)]
+                if not picked:
+                    continue
+                qpos = state(k)[0]
+                frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
+                                         [qpos[s.row] for _, s in picked])
+                for (o, _), images in zip(picked, observation_images(frames, self.render_config.cameras)):
+                    o.update(images)
+        if self.privileged:
+            for slot, o in zip(slots, obs):
+                qpos, qvel = state(slot.bucket)
+                layout = self._layouts[slot.plan.hash]
+                o["privileged"] = {"qpos": layout.qpos(qpos[slot.row]), "qvel": layout.qvel(qvel[slot.row]),
+                                   "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
+        return obs
+
+    def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
+        out = outputs[slot.bucket]
+        plan = slot.plan
+        return {
+            "instruction": plan.instruction,
+            "state": {k: np.asarray(out[k][slot.row], np.float32)
+                      for k in ("joint_pos", "joint_vel", "ee_pose", "gripper")},
+            "meta": {"task": plan.task, "episode": plan.seed, "step": slot.step, "embodiment": plan.embodiment,
+                     "control_hz": plan.control_hz},
+        }
+
+    def close(self) -> None:
+        for renderer in self._renderers:
+            renderer.close()
+        self._renderers = []
+
+    def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
+        """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
+        ids = resolve_ids(env_ids, self.num_envs)
+        slots = [self._slots[i] for i in ids]
+        out = [self._layouts[s.plan.hash].qpos(self._engine.data[s.bucket].qpos[s.row]) for s in slots]
+        return np.stack(out) if out else np.zeros((0, 0))
+
+
+@dataclass(frozen=True)
+class PlanLayout:
+    """Where each joint of a padded bucket model sits in the plan's own model: index maps that move a padded
+    qpos (or qvel) back into the plan's layout, for the oracle and for comparison with `mujoco`. Parked slots have
+    no place there and are dropped. Built once per bucket member: the map never changes while it runs."""
+
+    nq: int
+    nv: int
+    qpos_padded: np.ndarray
+    qpos_plan: np.ndarray
+    qvel_padded: np.ndarray
+    qvel_plan: np.ndarray
+
+    @classmethod
+    def build(cls, padded: mujoco.MjModel, source: mujoco.MjModel, names: dict[str, str]) -> "PlanLayout":
+        maps: dict[bool, tuple[list[int], list[int]]] = {False: ([], []), True: ([], [])}
+        for j in range(padded.njnt):
+            name = mujoco.mj_id2name(padded, mujoco.mjtObj.mjOBJ_JOINT, j)
+            src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, names.get(name, name))
+            if src < 0:
+                continue
+            for velocity, (pad_adr, src_adr, widths) in {
+                    False: (padded.jnt_qposadr, source.jnt_qposadr, {0: 7, 1: 4}),
+                    True: (padded.jnt_dofadr, source.jnt_dofadr, {0: 6, 1: 3})}.items():
+                width = widths.get(int(padded.jnt_type[j]), 1)
+                maps[velocity][0].extend(range(pad_adr[j], pad_adr[j] + width))
+                maps[velocity][1].extend(range(src_adr[src], src_adr[src] + width))
+        index = {v: tuple(np.asarray(ix, np.int64) for ix in pair) for v, pair in maps.items()}
+        return cls(source.nq, source.nv, *index[False], *index[True])
+
+    def qpos(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.nq)
+        out[self.qpos_plan] = np.asarray(values)[self.qpos_padded]
+        return out
+
+    def qvel(self, values: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.nv)
+        out[self.qvel_plan] = np.asarray(values)[self.qvel_padded]
+        return out

@@ -1,0 +1,278 @@
+"""The batched engine: every bucket's environments advance one control step inside one jitted call.
+
+Layout. A bucket of B environments holds its `mjx.Data` batched along axis 0 and, per environment, the index of
+the bucket member (plan) it simulates. The member table (varying model fields and initial states, one row per
+plan) lives on the device; each tick gathers the rows of the current members and vmaps `mjx.step` over the data
+*and* those fields (`in_axes` 0 for the varying fields, None for the shared model). A tick applies resets, writes
+the controls, runs the plan's physics sub-steps (`n_substeps` per 25 Hz control step) in a `fori_loop`, and
+recomputes kinematics so that positions match the new state. All buckets of a tick are traced into one program,
+so the device runs different tasks' batches concurrently instead of one after another.
+
+Continuous batching. Refilling an environment is "set its member index and its reset flag", both ordinary
+inputs of fixed shape, so the program compiled for the first tick serves the whole run.
+
+Stable types. MJX's `make_data` mixes weak and strong types and a few dtypes that `step` returns changed, and
+its arrays are not committed to a device while a jitted call's outputs are; feeding a tick's output back would
+then compile the tick a second time. `Engine` casts the initial state to the exact types one tick returns (read
+with `jax.eval_shape`, no compilation) and commits it, so the state's types are a fixed point from the first
+call on (`Engine.compilations()` stays 1).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from dojo.backends.mjx.bucket import Bucket
+
+log = logging.getLogger(__name__)
+Tree = Any
+# Per-world state a reset or a non-stepping environment restores; everything else is derived from it by a step.
+_STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
+
+
+REST_MARGIN = 2
+"""Contacts and constraint rows allocated per world are at least this many times what the bucket's plans have at
+rest (their initial states, `mj_forward` on the CPU): grasps, pushes and stacks add contacts to a resting layout."""
+OVERFLOW_FLAGS = {1 << 0: "constraint rows (njmax)", 1 << 1: "constraint Jacobian non-zeros (njmax_nnz)",
+                  1 << 2: "broadphase pairs (naconmax)", 1 << 3: "contacts (naconmax)",
+                  1 << 4: "CCD contacts (naccdmax)", 1 << 5: "height-field contacts",
+                  1 << 6: "contact-match sensor", 1 << 7: "awake dofs (nvmax)", 1 << 8: "EPA horizon",
+                  1 << 11: "tactile sensor pairs"}
+"""MuJoCo Warp's `OverflowType` bits (mujoco_warp 4.0 `types.OverflowType`) that mean a buffer was too small and
+contacts or constraint rows were dropped. The solver's iteration-limit bits (1 << 9, 1 << 10) are left out: they
+report convergence, not lost physics. Warp ORs these bits into `Data.overflow` per world and never clears them."""
+
+
+class CapacityOverflow(RuntimeError):
+    """A Warp buffer was too small: contacts or constraint rows were dropped, so the physics is not the plan's."""
+
+
+def contact_capacity(bucket: Bucket) -> tuple[int, int]:
+    """(contacts, constraint rows) to allocate per world for the warp implementation, sized from the plans.
+
+    Warp preallocates contact and constraint buffers; too few drops contacts (detected: `Engine.check_overflow`),
+    too many costs memory. Grasps and stacked objects touch with a few points per colliding geom, so the contact
+    budget scales with the colliding geoms; an elliptic cone contact takes up to 6 rows (condim 6), plus rows for
+    limits and equalities. Both are raised to REST_MARGIN times the most any member has at rest.
+    """
+    m = bucket.model
+    colliding = int(np.sum((m.geom_contype != 0) | (m.geom_conaffinity != 0)))
+    rest_contacts, rest_rows = rest_constraints(bucket)
+    contacts = max(64, 4 * colliding, REST_MARGIN * rest_contacts)
+    return contacts, max(6 * contacts + 2 * m.njnt + 4 * m.neq, REST_MARGIN * rest_rows)
+
+
+def rest_constraints(bucket: Bucket) -> tuple[int, int]:
+    """The most contacts and constraint rows any member of the bucket has in its initial state (CPU MuJoCo)."""
+    contacts = rows = 0
+    for member in bucket.members:
+        data = mujoco.MjData(member.model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
+        mujoco.mj_forward(member.model, data)
+        contacts, rows = max(contacts, int(data.ncon)), max(rows, int(data.nefc))
+    return contacts, rows
+
+
+def decode_overflow(bits: Any) -> dict[str, int]:
+    """{what overflowed: how many worlds} from per-world Warp overflow bitmasks (only buffer-size flags)."""
+    bits = np.asarray(bits).reshape(-1).astype(np.int64)
+    return {name: int(np.count_nonzero(bits & flag)) for flag, name in OVERFLOW_FLAGS.items()
+            if np.any(bits & flag)}
+
+
+@dataclass
+class BucketArrays:
+    """A bucket on the device: shared model, member table, `in_axes` for the gathered model."""
+
+    bucket: Bucket
+    size: int
+    mx: Tree
+    table: dict[str, jax.Array]
+    in_axes: Tree
+
+
+def _prepare(bucket: Bucket, size: int, impl: str) -> BucketArrays:
+    mx = mjx.put_model(bucket.model, impl=impl)
+    table = {}
+    for name, rows in bucket.table().items():
+        if hasattr(mx, name):  # the implementation's layout: warp keeps e.g. geom_aabb as [ngeom, 2, 3], not [ngeom, 6]
+            field = getattr(mx, name)
+            table[name] = jnp.asarray(rows.reshape((len(rows),) + field.shape), dtype=field.dtype)
+        else:
+            table[name] = jnp.asarray(rows, dtype=jnp.float32)
+    in_axes = jax.tree.map(lambda _: None, mx).tree_replace({name: 0 for name in bucket.varying})
+    return BucketArrays(bucket, size, mx, table, in_axes)
+
+
+def _initial_data(arr: BucketArrays, impl: str) -> Tree:
+    """A batch of `size` environments, each at member 0's initial state (reset flags choose the real members)."""
+    m = arr.bucket.model
+    if impl == "warp":
+        contacts, rows = contact_capacity(arr.bucket)
+        one = partial(mjx.make_data, m, impl="warp", naconmax=contacts * arr.size, njmax=rows)
+    else:
+        one = partial(mjx.make_data, m, impl="jax")
+    q0 = jnp.broadcast_to(arr.table["qpos"][0], (arr.size, m.nq))
+    return jax.vmap(lambda q: one().replace(qpos=q))(q0)
+
+
+def _select(mask: jax.Array, new: Tree, old: Tree) -> Tree:
+    """Per-environment choice between two batched states, on the per-world state fields only."""
+    def pick(name: str) -> jax.Array:
+        a, b = getattr(new, name), getattr(old, name)
+        return jnp.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+    return new.replace(**{name: pick(name) for name in _STATE_FIELDS})
+
+
+class Hooks:
+    """What a tick does besides physics; the defaults are physics only (the bench), the backend adds actions,
+    predicates and observations. All methods are traced inside the tick, per bucket, batched over its envs.
+
+    `control` maps the tick's per-env inputs to actuator controls [B, nu] (default: the inputs are controls);
+    `init_extra` is the per-env state the hooks carry between ticks (reset rows are re-initialised from it);
+    `observe` runs after the physics, on up-to-date positions, and returns the new extra state and the outputs.
+    """
+
+    forward = False
+    """Run a full `mjx.forward` after the sub-steps (tendon lengths, sensors) instead of kinematics only."""
+
+    def init_extra(self, arr: BucketArrays) -> Tree:
+        return ()
+
+    def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
+        return inputs, ()
+
+    def observe(self, arr: BucketArrays, m: Tree, data: Tree, extra: Tree, member: jax.Array, reset: jax.Array,
+                stepping: jax.Array, aux: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
+        return extra, ()
+
+
+def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax.Array], data: Tree, extra: Tree,
+                 member: jax.Array, reset: jax.Array, stepping: jax.Array, inputs: Tree, steps: jax.Array
+                 ) -> tuple[Tree, Tree, Tree]:
+    """One control step of one bucket (traced inside `Engine.tick`)."""
+    rows = {name: table[name][member] for name in arr.bucket.varying}
+    m = mx.tree_replace(rows)
+    init = data.replace(qpos=table["qpos"][member].astype(data.qpos.dtype),
+                        qvel=table["qvel"][member].astype(data.qvel.dtype),
+                        ctrl=table["ctrl"][member].astype(data.ctrl.dtype),
+                        act=jnp.zeros_like(data.act), time=jnp.zeros_like(data.time),
+                        qacc_warmstart=jnp.zeros_like(data.qacc_warmstart))
+    data = _select(reset, init, data)
+    fresh = hooks.init_extra(arr)
+    extra = jax.tree.map(lambda f, e: jnp.where(reset.reshape((-1,) + (1,) * (e.ndim - 1)), f, e), fresh, extra)
+    ctrl, aux = hooks.control(arr, m, data, inputs)
+    driven = data.replace(ctrl=jnp.where(stepping[:, None], ctrl.astype(data.ctrl.dtype), data.ctrl))
+    step = jax.vmap(mjx.step, in_axes=(arr.in_axes, 0))
+    stepped = jax.lax.fori_loop(0, arr.bucket.n_substeps, lambda _, d: step(m, d), driven)
+    data = _select(stepping, stepped, data)
+    data = jax.vmap(mjx.forward if hooks.forward else mjx.kinematics, in_axes=(arr.in_axes, 0))(m, data)
+    extra, outputs = hooks.observe(arr, m, data, extra, member, reset, stepping, aux, steps)
+    return data, extra, outputs
+
+
+def _stable(tree: Tree, like: Tree) -> Tree:
+    """`tree` with the dtypes of `like`, no weak types, committed to the device like a jitted call's outputs.
+
+    A host round trip makes every leaf strongly typed; committing matters too: jit keys its cache on it, and
+    uncommitted first inputs followed by committed outputs compiled the tick twice.
+    """
+    device = jax.devices()[0]
+    return jax.tree.map(lambda x, s: jax.device_put(np.asarray(x).astype(s.dtype), device), tree, like)
+
+
+class Engine:
+    """The device side of the mjx backend: buckets' batches, their member indices, and the one jitted tick.
+
+    `tick(members, resets, stepping, inputs, steps)` takes, per bucket, int32 member indices [B], reset and
+    stepping flags [B], the hooks' inputs (controls [B, nu] by default) and the control step each env completes
+    (int32 [B], for predicates); it keeps the new state in `self.data` / `self.extra` and returns the hooks'
+    outputs per bucket (device arrays, nothing waits for the device). Envs with the reset flag start their
+    member's episode; only envs with the stepping flag advance.
+    """
+
+    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
+                 example_inputs: Sequence[Tree] | None = None):
+        self.impl = impl
+        self.hooks = hooks or Hooks()
+        self.arrays = [_prepare(b, n, impl) for b, n in zip(buckets, sizes)]
+        self._tick = jax.jit(self._tick_all, donate_argnums=(2, 3))
+        data = tuple(_initial_data(a, impl) for a in self.arrays)
+        extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
+        inputs = tuple(example_inputs) if example_inputs is not None else tuple(
+            jnp.zeros((a.size, a.bucket.model.nu), jnp.float32) for a in self.arrays)
+        flags = self._flags()
+        shapes = jax.eval_shape(self._tick_all, self._models(), self._tables(), data, extra, *flags[:3], inputs,
+                                flags[3])
+        self.data = _stable(data, tuple(s[0] for s in shapes))
+        self.extra = _stable(extra, tuple(s[1] for s in shapes))
+
+    def _models(self) -> tuple[Tree, ...]:
+        return tuple(a.mx for a in self.arrays)
+
+    def _tables(self) -> tuple[dict[str, jax.Array], ...]:
+        return tuple(a.table for a in self.arrays)
+
+    def _flags(self) -> tuple[tuple[jax.Array, ...], ...]:
+        z = [(jnp.zeros(a.size, jnp.int32), jnp.zeros(a.size, bool), jnp.zeros(a.size, bool),
+              jnp.zeros(a.size, jnp.int32)) for a in self.arrays]
+        return tuple(tuple(col) for col in zip(*z))
+
+    def _tick_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
+                  stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
+        return tuple(_bucket_tick(a, self.hooks, *args)
+                     for a, *args in zip(self.arrays, mxs, tables, data, extra, members, resets, stepping, inputs,
+                                         steps))
+
+    def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
+             steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
+        """Advance every bucket by one control step (asynchronously: nothing waits for the device)."""
+        steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
+        out = self._tick(self._models(), self._tables(), self.data, self.extra,
+                         tuple(jnp.asarray(m, jnp.int32) for m in members),
+                         tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
+                         tuple(jax.tree.map(jnp.asarray, i) for i in inputs),
+                         tuple(jnp.asarray(s, jnp.int32) for s in steps))
+        self.data = tuple(o[0] for o in out)
+        self.extra = tuple(o[1] for o in out)
+        return tuple(o[2] for o in out)
+
+    def overflows(self) -> dict[str, dict[str, int]]:
+        """{bucket key: {what overflowed: worlds}} since the engine was built (warp only; reads the device).
+
+        Warp keeps contacts and constraint rows in preallocated buffers and drops what does not fit; it sets a
+        sticky per-world bit when it does, which this reads. The `jax` implementation allocates every candidate
+        contact statically and cannot overflow.
+        """
+        found = {}
+        for arr, data in zip(self.arrays, self.data):
+            bits = getattr(getattr(data, "_impl", None), "overflow", None)
+            flags = decode_overflow(jax.device_get(bits)) if bits is not None else {}
+            if flags:
+                found[arr.bucket.key] = flags
+        return found
+
+    def check_overflow(self) -> None:
+        """Raise `CapacityOverflow` naming each bucket, buffer and world count if any Warp buffer overflowed."""
+        found = self.overflows()
+        if found:
+            capacity = {a.bucket.key: contact_capacity(a.bucket) for a in self.arrays if a.bucket.key in found}
+            lines = [f"{key}: {', '.join(f'{what} in {n} world(s)' for what, n in flags.items())} (allocated "
+                     f"{capacity[key][0]} contacts and {capacity[key][1]} constraint rows per world)"
+                     for key, flags in found.items()]
+            raise CapacityOverflow("MuJoCo Warp dropped contacts or constraints, so these results are not the "
+                                   "plans' physics: " + "; ".join(lines) + ". Raise REST_MARGIN in "
+                                   "dojo/backends/mjx/batch.py or report the scene.")
+
+    def compilations(self) -> int:
+        """How many programs the tick has compiled (1 in a healthy run, whatever the refills)."""
+        return self._tick._cache_size()

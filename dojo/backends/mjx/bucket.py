@@ -1,0 +1,145 @@
+"""Buckets: plans whose compiled models share one MJX structure, with the values that differ per environment.
+
+MJX traces one XLA program per model structure. Every `int`, `bytes` and `np.ndarray` field of `mjx.Model` is
+static (part of the traced program), every `jax.Array` field is a value. Two models with equal static fields and
+equal array shapes therefore run under one compiled program, with the differing value fields batched per
+environment through `jax.vmap`'s `in_axes`. `structural_signature` hashes exactly that, from the MjModel, without
+building an `mjx.Model` per plan (which for meshes computes convex hulls).
+
+A bucket keeps, for each of its plans (a *member*), the values of the varying fields and the initial state, as a
+table with one row per member. The batch holds per environment only the member index; the model an environment
+simulates is gathered from the table inside the jitted step. Refilling a finished environment with the next
+queued episode of the bucket is then a change of one integer, never a new shape, so it never recompiles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import typing
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import mujoco
+import numpy as np
+from mujoco.mjx._src import types as mjx_types
+
+from dojo.compiler.plan import Plan
+
+from dojo.backends.mjx.pad import PaddedPlan, pad_group
+
+_HINTS = typing.get_type_hints(mjx_types.Model)
+_OPT_HINTS = typing.get_type_hints(mjx_types.Option)
+STATIC_FIELDS = tuple(f.name for f in dataclasses.fields(mjx_types.Model)
+                      if _HINTS[f.name] in (int, bool, bytes, np.ndarray, np.uint64))
+VALUE_FIELDS = tuple(f.name for f in dataclasses.fields(mjx_types.Model) if _HINTS[f.name] is mjx_types.jax.Array)
+_OPT_STATIC = tuple(n for n, t in _OPT_HINTS.items() if n != "_impl" and t is not mjx_types.jax.Array)
+_OPT_VALUES = tuple(n for n, t in _OPT_HINTS.items() if t is mjx_types.jax.Array)
+
+
+def structural_signature(model: mujoco.MjModel) -> str:
+    """Hash of everything MJX treats as structure: static fields' contents, value fields' shapes, options."""
+    h = hashlib.sha256()
+    for name in STATIC_FIELDS:
+        value = getattr(model, name)
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
+    for name in VALUE_FIELDS:
+        h.update(f"{name}{np.shape(getattr(model, name))}".encode())
+    for name in _OPT_STATIC + _OPT_VALUES:  # options are the robot's; differing values split rather than batch
+        h.update(f"{name}{np.asarray(getattr(model.opt, name)).tolist()}".encode())
+    return h.hexdigest()
+
+
+@dataclass
+class Member:
+    """One plan inside a bucket: its padded model and initial state in the bucket's layout."""
+
+    padded: PaddedPlan
+    model: mujoco.MjModel
+    qpos: np.ndarray
+    qvel: np.ndarray
+    ctrl: np.ndarray
+
+    @property
+    def plan(self) -> Plan:
+        return self.padded.plan
+
+
+@dataclass
+class Bucket:
+    """Plans sharing one structure. `varying` names the model value fields that differ between members."""
+
+    key: str
+    members: list[Member]
+    varying: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The reference model (the first member's): shared fields and the structure come from it."""
+        return self.members[0].model
+
+    @property
+    def n_substeps(self) -> int:
+        return self.members[0].plan.n_substeps
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        return tuple(sorted({m.plan.task for m in self.members}))
+
+    def table(self) -> dict[str, np.ndarray]:
+        """Per-member values of the varying fields and the initial state, stacked along a leading member axis."""
+        rows = {name: np.stack([getattr(m.model, name) for m in self.members]) for name in self.varying}
+        rows.update(qpos=np.stack([m.qpos for m in self.members]), qvel=np.stack([m.qvel for m in self.members]),
+                    ctrl=np.stack([m.ctrl for m in self.members]))
+        return rows
+
+
+def _initial_state(padded: PaddedPlan, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plan's initial qpos/qvel/ctrl moved into the padded layout; parked slots rest at their parking pose."""
+    plan = padded.plan
+    source = plan.model()
+    qpos, qvel = model.qpos0.copy(), np.zeros(model.nv)
+    src_qpos, src_qvel = np.asarray(plan.init_qpos), np.asarray(plan.init_qvel)
+    for j in range(model.njnt):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+        src = mujoco.mj_name2id(source, mujoco.mjtObj.mjOBJ_JOINT, padded.names.get(name, name))
+        if src < 0:
+            continue
+        nq = _QPOS_WIDTH[model.jnt_type[j]]
+        nv = _QVEL_WIDTH[model.jnt_type[j]]
+        qpos[model.jnt_qposadr[j]:model.jnt_qposadr[j] + nq] = src_qpos[source.jnt_qposadr[src]:][:nq]
+        qvel[model.jnt_dofadr[j]:model.jnt_dofadr[j] + nv] = src_qvel[source.jnt_dofadr[src]:][:nv]
+    if model.nu != source.nu:
+        raise ValueError(f"plan {plan.hash[:12]}: padding changed the actuators ({source.nu} -> {model.nu})")
+    return qpos, qvel, np.asarray(plan.init_ctrl, dtype=float)
+
+
+_QPOS_WIDTH = {0: 7, 1: 4, 2: 1, 3: 1}
+_QVEL_WIDTH = {0: 6, 1: 3, 2: 1, 3: 1}
+
+
+def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
+    ref = models[0]
+    return tuple(name for name in VALUE_FIELDS
+                 if any(not np.array_equal(getattr(m, name), getattr(ref, name)) for m in models[1:]))
+
+
+def make_buckets(plans: Sequence[Plan]) -> list[Bucket]:
+    """Group plans into buckets of one structure each, in a deterministic order.
+
+    The plans of each (task, setting) are first padded to a common structure (see pad.py), so that they need few
+    buckets; settings are padded apart so that `standard` scenes do not carry `random` clutter slots. Different
+    tasks never share a bucket (their programs and names differ).
+    """
+    by_group: dict[tuple[str, str], list[Plan]] = defaultdict(list)
+    for plan in plans:
+        by_group[plan.task, plan.setting].append(plan)
+    groups: dict[str, list[Member]] = defaultdict(list)
+    for (task, setting) in sorted(by_group):
+        for pp in pad_group(by_group[task, setting], task):
+            model = mujoco.MjModel.from_xml_string(pp.xml)
+            qpos, qvel, ctrl = _initial_state(pp, model)
+            groups[f"{task}:{structural_signature(model)[:16]}"].append(Member(pp, model, qpos, qvel, ctrl))
+    return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]

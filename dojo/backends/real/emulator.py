@@ -1,0 +1,69 @@
+"""The emulated robot, assembled: the real-time world, the arms' controllers on their buses, the cameras.
+
+`EmulatedRobot` is what `backend.driver=emulator` runs against: a robot whose configuration names the `piper`
+driver gets PiPER controllers on two python-can virtual buses (channel names unique to this instance, as the
+SDK keeps one interface per channel name per process), and `driver()` is the same `PiperDriver` hardware uses,
+pointed at those buses.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+
+from dojo.backends.real.driver import Driver
+from dojo.backends.real.emulated_cameras import EmulatedCameras
+from dojo.backends.real.realtime_sim import RealTimeSim
+from dojo.backends.real.robot_config import RealRobotConfig
+
+
+@dataclass(frozen=True)
+class EmulatorParams:
+    """Imperfections and rates of the emulated hardware."""
+
+    encoder_noise: float = 0.0
+    """Standard deviation (rad) of Gaussian noise on each reported joint angle."""
+    command_delay: float = 0.0
+    """Seconds between a command frame's arrival and its effect."""
+    feedback_drop: float = 0.0
+    """Probability that any one feedback frame is never sent."""
+    camera_drop: float = 0.0
+    """Probability that a camera frame is late (the previous one is delivered again)."""
+    feedback_hz: float = 200.0
+    """Rate of the arm's periodic feedback (the PiPER's is 200 Hz)."""
+    rx_buffer: int = 512
+    """Frames a reader's queue on a virtual channel holds before the oldest are dropped."""
+    seed: int = 0
+
+
+class EmulatedRobot:
+    """One emulated robot of `config.robot` in `model` (a plan's scene or the robot-only world), running."""
+
+    def __init__(self, model: mujoco.MjModel, robot: Mapping[str, Any], config: RealRobotConfig,
+                 params: EmulatorParams = EmulatorParams(), qpos: Sequence[float] | None = None) -> None:
+        if config.driver != "piper":
+            raise ValueError(f"robot {config.robot!r}: no emulator for driver {config.driver!r} yet (piper only)")
+        from dojo.backends.real.piper_emulator import PiperCanEmulator
+
+        self.robot, self.params = dict(robot), params
+        self.sim = RealTimeSim(model, robot, config.joint_velocity, qpos)
+        self.channels = tuple(f"dojo-emulator-{uuid.uuid4().hex[:8]}-{side}" for side in ("left", "right"))
+        self.controllers = PiperCanEmulator(self.sim, self.channels, params=params)
+        self.sim.start()
+
+    def driver(self) -> Driver:
+        """A driver for this robot, as on hardware but on the emulator's buses (not yet connected)."""
+        from dojo.backends.real.piper_driver import PiperDriver
+
+        return PiperDriver(self.robot, self.channels, interface="virtual")
+
+    def cameras(self, names: Sequence[str], width: int, height: int, depth: bool = False) -> EmulatedCameras:
+        return EmulatedCameras(self.sim, names, width, height, depth, self.params.camera_drop, self.params.seed)
+
+    def close(self) -> None:
+        self.sim.stop()
+        self.controllers.close()

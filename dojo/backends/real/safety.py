@@ -1,0 +1,200 @@
+"""The safety layer between the policy and the driver: every command is checked, clipped or refused, and counted.
+
+Per command (one control step's joint targets [2, J] and grippers [2]), in this order:
+1. during an e-stop (holding, returning, or stopped at the reset pose) every command is refused;
+2. a non-finite value is refused;
+3. a target farther than `max_jump` from the measured joints (any joint) is refused: a policy that far off
+   would still be driven there step by step if it were only clipped;
+4. targets are clipped to the joint ranges and grippers to [0, 1];
+5. the step from the previous command is clipped to the joints' velocity limits, and its speed-up to their
+   accelerations (slowing down is never limited, so a clipped command never overshoots its target);
+6. the result is posed on the robot's collision model (`workspace.RobotGeometry`): a target that puts any
+   moving geom below the table plane (beyond `table_penetration`) or outside the workspace box is refused.
+What passes is sent; a refused command sends nothing, so the arms keep the last safe target.
+
+A supervisor (thread, `start()`) runs `tick` at SUPERVISOR_HZ: with no command for `watchdog_s` it holds the
+arms where they are; after an e-stop it holds for `estop_hold_s`, then returns the arms to the reset pose at
+`return_speed` of their joint speeds (through the driver's own interpolation) and waits there, stopped, until
+the operator calls `release()`. `estop()` itself commands the hold at once, from the caller's thread.
+
+Every clipped or refused command is counted per trial (`counters`, names in COUNTERS), for the operator
+console and the trial's record; `new_trial()` zeroes them.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from dojo.backends.real.driver import Driver
+from dojo.backends.real.robot_config import RealRobotConfig
+from dojo.backends.real.workspace import RobotGeometry
+
+COUNTERS = ("refused_estop", "refused_nonfinite", "refused_jump", "refused_table", "refused_workspace",
+            "clipped_joint_limit", "clipped_gripper", "clipped_velocity", "clipped_acceleration", "watchdog_holds")
+SUPERVISOR_HZ = 100.0
+HOME_TOLERANCE = 0.01
+"""rad: the return to the reset pose is over when every joint is this close to it."""
+
+RUNNING, HOLDING, ESTOP, RETURNING, STOPPED = "running", "holding", "estop", "returning", "stopped"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What became of one command: `sent` or not, the clip counters it raised, the refusal counter (or None)."""
+
+    sent: bool
+    clipped: tuple[str, ...] = ()
+    refused: str | None = None
+
+
+class SafetyLayer:
+    """Checks every command for `driver` against the limits of `config` on the collision model `geometry`."""
+
+    def __init__(self, driver: Driver, geometry: RobotGeometry, config: RealRobotConfig, control_hz: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        """`control_hz`: the rate commands come at (velocity and acceleration limits are per its period);
+        `clock`: monotonic seconds, for the watchdog and the e-stop's hold."""
+        self.driver, self.geometry, self.config, self.clock = driver, geometry, config, clock
+        self.dt = 1.0 / control_hz
+        limits = geometry.index.limits
+        self.joint_lo, self.joint_hi = limits.joint_lo, limits.joint_hi
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.state = RUNNING
+        self.estop_time: float | None = None
+        self._lock = threading.Lock()
+        self._last_command: float | None = None
+        self._prev_q = self._prev_v = np.zeros_like(self.joint_lo)  # set at rest by the first command
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ---- trials ----
+
+    def new_trial(self) -> None:
+        """Zero the counters; the watchdog sleeps until the trial's first command, which is limited from
+        wherever the arms are then, at rest (so the robot may be moved to its start in between). An e-stop
+        stays in force until `release()`."""
+        with self._lock:
+            self.counters = dict.fromkeys(COUNTERS, 0)
+            self._last_command = None
+
+    def release(self) -> None:
+        """The operator's go-ahead after an e-stop: accept commands again, from where the arms are then."""
+        with self._lock:
+            self.state, self.estop_time, self._last_command = RUNNING, None, None
+
+    # ---- commands ----
+
+    def command(self, joint_pos: np.ndarray, gripper: np.ndarray) -> Verdict:
+        """Check one command (see the module docstring) and send it if it passes."""
+        q = np.asarray(joint_pos, dtype=float).reshape(self.joint_lo.shape)
+        grip = np.asarray(gripper, dtype=float).reshape(2)
+        with self._lock:
+            if self.state in (ESTOP, RETURNING, STOPPED):
+                return self._refuse("refused_estop")
+            if not (np.isfinite(q).all() and np.isfinite(grip).all()):
+                return self._refuse("refused_nonfinite")
+            if self.state == HOLDING or self._last_command is None:
+                self._rest_at_measured()
+            if np.abs(q - self.driver.read().joint_pos).max() > self.config.max_jump:
+                return self._refuse("refused_jump")
+            clipped = []
+            limited = np.clip(q, self.joint_lo, self.joint_hi)
+            if not np.array_equal(limited, q):
+                clipped.append("clipped_joint_limit")
+            grip_ok = np.clip(grip, 0.0, 1.0)
+            if not np.array_equal(grip_ok, grip):
+                clipped.append("clipped_gripper")
+            limited, velocity, rate_clips = self._rate_limit(limited)
+            clipped += rate_clips
+            refusal = self._placement(limited, grip_ok)
+            if refusal is not None:
+                self._prev_v = np.zeros_like(self._prev_v)  # the arms stop at the last safe target
+                return self._refuse(refusal)
+            self.driver.command(limited, grip_ok)
+            self._prev_q, self._prev_v = limited, velocity
+            self._last_command = self.clock()
+            self.state = RUNNING
+            for name in clipped:
+                self.counters[name] += 1
+            return Verdict(sent=True, clipped=tuple(clipped))
+
+    def _rate_limit(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """q with its step from the previous command limited in velocity and in speed-up; the new velocity."""
+        wanted = (q - self._prev_q) / self.dt
+        vmax = self.config.joint_velocity
+        v = np.clip(wanted, -vmax, vmax)
+        clips = ["clipped_velocity"] if not np.array_equal(v, wanted) else []
+        same_way = np.sign(v) == np.sign(self._prev_v)
+        allowed = np.where(same_way, np.abs(self._prev_v), 0.0) + self.config.joint_acceleration * self.dt
+        slower = np.sign(v) * np.minimum(np.abs(v), allowed)
+        if not np.array_equal(slower, v):
+            clips.append("clipped_acceleration")
+        if not clips:
+            return q, slower, clips
+        return self._prev_q + slower * self.dt, slower, clips
+
+    def _placement(self, q: np.ndarray, gripper: np.ndarray) -> str | None:
+        """The refusal counter if the robot's collision model at (q, gripper) leaves the allowed space."""
+        lo, hi = self.geometry.boxes(q, gripper)
+        if lo[:, 2].min() < self.config.table_z - self.config.table_penetration:
+            return "refused_table"
+        if (lo < self.config.workspace_lo).any() or (hi > self.config.workspace_hi).any():
+            return "refused_workspace"
+        return None
+
+    def _refuse(self, counter: str) -> Verdict:
+        self.counters[counter] += 1
+        return Verdict(sent=False, refused=counter)
+
+    def _rest_at_measured(self) -> None:
+        self._prev_q = self.driver.read().joint_pos
+        self._prev_v = np.zeros_like(self._prev_q)
+
+    # ---- e-stop and supervision ----
+
+    def estop(self) -> float:
+        """Disable policy control and hold the arms now; the supervisor returns them to the reset pose after
+        `estop_hold_s`. Returns the trigger time (on `clock`)."""
+        with self._lock:
+            self.estop_time = self.clock()
+            self.state = ESTOP
+            self.driver.hold()
+            return self.estop_time
+
+    def tick(self, now: float) -> None:
+        """One supervisor step at time `now` (the thread calls it; tests may call it with their own times)."""
+        with self._lock:
+            if self.state == RUNNING and self._last_command is not None \
+                    and now - self._last_command > self.config.watchdog_s:
+                self.driver.hold()
+                self.counters["watchdog_holds"] += 1
+                self.state = HOLDING
+            elif self.state == ESTOP and self.estop_time is not None \
+                    and now - self.estop_time >= self.config.estop_hold_s:
+                self.driver.home(self.config.return_speed)
+                self.state = RETURNING
+            elif self.state == RETURNING:
+                home = self.driver.home_pose[0]
+                if np.abs(self.driver.read().joint_pos - home).max() < HOME_TOLERANCE:
+                    self.state = STOPPED
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._supervise, name="dojo-safety", daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+
+    def _supervise(self) -> None:
+        while not self._stop.wait(1.0 / SUPERVISOR_HZ):
+            self.tick(self.clock())

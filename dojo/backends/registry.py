@@ -1,0 +1,61 @@
+"""Backends by name: `make_backend("mujoco", options)` builds any backend, so no caller constructs one by hand.
+
+A backend is one subpackage of `dojo.backends` whose `__init__` defines `make(options: BackendOptions) -> Backend`,
+plus one Hydra config file (`dojo/cli/config/backend/<name>.yaml`) whose keys other than `name` reach `make` as
+`options.settings`. The runtime names a backend by its config; this module imports the package only when asked,
+so choosing `mujoco` never imports JAX.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from dojo.backends.base import Backend
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    """What every backend is built from. `settings` holds the backend's own config keys (threads, impl, ...)."""
+
+    cameras: tuple[str, ...] = ()
+    width: int = 640
+    height: int = 480
+    depth: bool = False
+    privileged: bool = False
+    """Observations carry the simulator state (for privileged reference policies, the oracle, only)."""
+    plan_paths: Mapping[str, str] | None = None
+    """Plan hash -> plan file, for privileged observations and for backends that preload every plan."""
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+
+def available() -> list[str]:
+    """The backend subpackages installed (their names, without importing them)."""
+    import dojo.backends as package
+
+    return sorted(m.name for m in pkgutil.iter_modules(package.__path__) if m.ispkg)
+
+
+def make_backend(name: str, options: BackendOptions) -> Backend:
+    """A new backend `name` built from `options`."""
+    if name not in available():
+        raise ValueError(f"unknown backend {name!r}; one of {', '.join(available())}")
+    make = getattr(importlib.import_module(f"dojo.backends.{name}"), "make", None)
+    if make is None:
+        raise ValueError(f"dojo.backends.{name} defines no make(options): it is not a backend")
+    return make(options)
+
+
+def backend_factory(name: str, options: BackendOptions) -> Callable[[], Backend]:
+    """A factory for the evaluation loop, which builds its backend when it has work (and closes it after)."""
+    return lambda: make_backend(name, options)
+
+
+def factory_from_config(config: Mapping[str, Any], **options: Any) -> Callable[[], Backend]:
+    """A factory for the backend a config names: `config` is the backend config group's content (its `name`
+    and the backend's own settings, as plain data); `options` are the other `BackendOptions` fields."""
+    settings = {k: v for k, v in config.items() if k != "name"}
+    return backend_factory(str(config["name"]), BackendOptions(settings=settings, **options))

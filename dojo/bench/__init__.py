@@ -1,0 +1,1 @@
+"""`dojo bench`: throughput and parity measurements, each printing one JSON line with its baseline."""

@@ -1,0 +1,254 @@
+"""`dojo bench sim`: simulation throughput of the backend the user names.
+
+`backend=mujoco` measures the CPU backend alone (what a machine without a GPU runs; JAX is never imported).
+`backend=mjx` (the default) measures the batched backend; one workload, three ways to run it:
+- `heterogeneous`: every bucket of every task in one process, all buckets of a tick in one jitted call;
+- `homogeneous`: the same buckets with the same batch sizes, one bucket's batch at a time (its own jitted call),
+  one after another: what a batched simulator without heterogeneous parallelism does with a task mix;
+- `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans.
+
+The batch (`num_envs`) is shared among buckets in proportion to their plans (episodes); environment i of a
+bucket runs plan i mod n. Physics only: controls are each plan's initial controls with a +-0.1 rad swing of the
+arm joints that alternates every control step, so arms move and servos work; no predicates, no observations.
+Two counts, never mixed: `interactions_per_s` counts control steps (one action applied in one environment, at
+the plans' control rate), `physics_steps_per_s` counts physics steps (one `mj_step` of one environment; a control
+step is `substeps_per_interaction` of them). The first tick (compilation) and `warmup` ticks are excluded from
+the timings and reported apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import Counter
+from importlib.metadata import version
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import mujoco
+import numpy as np
+
+if TYPE_CHECKING:
+    import jax
+
+    from dojo.backends.mjx.bucket import Bucket
+
+SWING = 0.1
+MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams")
+"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp: asked for by name."""
+COUNTS = {"interactions": "control steps: one action applied in one environment",
+          "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
+log = logging.getLogger(__name__)
+
+
+def load_plans(cfg: dict[str, Any], backend: str = "mjx") -> list[Any]:
+    """Plans from `cfg['plans']` (a folder of plan files, filtered by `tasks`), else compiled for `backend`:
+    `episodes` standard-setting seeds of each task in `tasks` (every built-in task when empty)."""
+    from dojo.compiler.plan import Plan, compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    tasks = list(cfg.get("tasks") or [])
+    if cfg.get("plans"):
+        plans = [Plan.load(p) for p in sorted(Path(cfg["plans"]).glob("*.json"))]
+        plans = [p for p in plans if not tasks or p.task in tasks]
+        per_task, count = int(cfg.get("episodes") or 0), Counter[str]()
+        if per_task:
+            kept = []
+            for plan in plans:
+                if count[plan.task] < per_task:
+                    kept.append(plan)
+                    count[plan.task] += 1
+            plans = kept
+        return plans
+    library = SpecLibrary.load([Path(p) for p in cfg.get("packages", [])])
+    tasks = tasks or sorted(s.id for s in library.of_kind("task"))
+    return [compile_plan(library, library.get("task", t), "standard", seed, backend=backend)
+            for t in tasks for seed in range(int(cfg.get("episodes") or 2))]
+
+
+def split_batch(buckets: Sequence[Bucket], num_envs: int) -> list[int]:
+    """Environments per bucket, proportional to its plans, at least one each, summing to num_envs."""
+    if num_envs < len(buckets):
+        raise ValueError(f"num_envs={num_envs} is smaller than the number of buckets ({len(buckets)})")
+    weights = np.asarray([len(b.members) for b in buckets], dtype=float)
+    sizes = np.maximum(1, np.floor(num_envs * weights / weights.sum())).astype(int)
+    for k in np.argsort(-weights)[: num_envs - int(sizes.sum())]:
+        sizes[k] += 1
+    return [int(s) for s in sizes]
+
+
+def _controls(bucket: Bucket, size: int) -> tuple[jax.Array, jax.Array]:
+    """The two alternating control batches of a bucket (on the device)."""
+    import jax.numpy as jnp
+
+    base = np.stack([bucket.members[i % len(bucket.members)].ctrl for i in range(size)]).astype(np.float32)
+    arm = np.zeros(bucket.model.nu, np.float32)
+    robot = bucket.members[0].plan.robot
+    names = [mujoco.mj_id2name(bucket.model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) for a in range(bucket.model.nu)]
+    arm[[k for k, n in enumerate(names) if n not in robot.get("gripper_actuators", ())]] = SWING
+    return jnp.asarray(base + arm), jnp.asarray(base - arm)
+
+
+def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int) -> dict[str, float]:
+    """Build one engine over `buckets`, compile, warm up, and time `steps` ticks."""
+    import jax
+    import jax.numpy as jnp
+
+    from dojo.backends.mjx.batch import Engine
+
+    start = time.perf_counter()
+    engine = Engine(buckets, sizes, impl)
+    members = [jnp.asarray(np.arange(n) % len(b.members), jnp.int32) for b, n in zip(buckets, sizes)]
+    ones = [jnp.ones(n, bool) for n in sizes]
+    zeros = [jnp.zeros(n, bool) for n in sizes]
+    swings = [_controls(b, n) for b, n in zip(buckets, sizes)]
+    engine.tick(members, ones, zeros, [s[0] for s in swings])
+    jax.block_until_ready(engine.data)
+    compile_s = time.perf_counter() - start
+    log.info("%d bucket(s), %d envs: engine built and first tick compiled in %.1f s", len(buckets), sum(sizes),
+             compile_s)
+    for k in range(warmup):
+        engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
+    jax.block_until_ready(engine.data)
+    start = time.perf_counter()
+    for k in range(steps):
+        engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
+    jax.block_until_ready(engine.data)
+    elapsed = time.perf_counter() - start
+    engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
+    envs = sum(sizes)
+    substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
+    return {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
+            "physics_steps": envs * steps * substeps, "compilations": engine.compilations()}
+
+
+def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
+    seconds = sum(r["seconds"] for r in runs)
+    return {"interactions_per_s": sum(r["interactions"] for r in runs) / seconds,
+            "physics_steps_per_s": sum(r["physics_steps"] for r in runs) / seconds,
+            "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
+            "compilations": int(sum(r["compilations"] for r in runs))}
+
+
+def _peak_memory() -> int | None:
+    import jax
+
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
+def _modes(backend: str, modes: Sequence[str] | None) -> tuple[str, ...]:
+    """The modes to measure: the CPU alone for backend=mujoco, else the given subset of MJX_MODES (all three)."""
+    if backend not in ("mjx", "mujoco"):
+        raise ValueError(f"bench sim measures backend mjx or mujoco; got backend {backend!r}")
+    chosen = tuple(modes or (("cpu",) if backend == "mujoco" else MJX_MODES[:3]))
+    unknown = [m for m in chosen if m not in MJX_MODES]
+    if unknown:
+        raise ValueError(f"unknown bench sim mode(s) {unknown}; choose among {list(MJX_MODES)}")
+    if backend == "mujoco" and chosen != ("cpu",):
+        raise ValueError("backend=mujoco measures the CPU backend alone; heterogeneous and homogeneous are modes "
+                         "of backend=mjx")
+    return chosen
+
+
+def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Measure and return the figures of `dojo bench sim` (one JSON object).
+
+    cfg keys: `num_envs` (total batch), `steps` (timed control steps), `warmup` (untimed ticks after the
+    compiling one, default 3), `tasks` (ids; empty = all), `plans` (folder of compiled plans; else `episodes`
+    plans per task are compiled), `episodes`, `backend: {name, impl}` (name `mjx` or `mujoco`; impl `auto`, `jax`
+    or `warp`), `modes` (subset of heterogeneous, homogeneous, cpu; backend=mujoco is `cpu` alone), `cpu_envs`,
+    `cpu_steps` (the size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
+    """
+    backend = cfg.get("backend") or {}
+    name = str(backend.get("name", "mjx"))
+    modes = _modes(name, cfg.get("modes"))
+    if modes == ("cpu",):
+        if name == "mujoco":  # the backend named: its sizes are the command's num_envs and steps
+            return bench_cpu(cfg, int(cfg.get("num_envs", 8)), int(cfg.get("steps", 10)))
+        return bench_cpu(cfg, int(cfg.get("cpu_envs", 8)), int(cfg.get("cpu_steps", 10)))
+    return _bench_mjx(cfg, backend, modes)
+
+
+def bench_cpu(cfg: dict[str, Any], num_envs: int, steps: int) -> dict[str, Any]:
+    """The mujoco backend alone, on plans compiled for it: what `dojo run` steps on a machine without a GPU."""
+    from dojo.backends.mujoco.bench import measure_cpu
+
+    start = time.perf_counter()
+    plans = load_plans(cfg, backend="mujoco")
+    log.info("%d plans (%.1f s)", len(plans), time.perf_counter() - start)
+    cpu = measure_cpu(plans, num_envs, steps, resets=1)
+    substeps = float(np.mean([p.n_substeps for p in plans]))
+    out = {"what": "sim", "backend": "mujoco", "num_envs": num_envs, "steps": steps, "threads": cpu["threads"],
+           "cpus": os.cpu_count(), "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
+           "mujoco": mujoco.__version__, "counts": COUNTS, "substeps_per_interaction": substeps,
+           **_cpu_figures(cpu, substeps)}
+    if len(out["tasks"]) == 1:  # one scene: the backend's cost over plain mj_step of it, per CPU second
+        bare = cpu["raw_mj_step_per_cpu_s"] / substeps
+        out["bare_physics"] = {"mj_step_per_cpu_s": cpu["raw_mj_step_per_cpu_s"], "interactions_per_cpu_s": bare}
+        out["overhead_over_bare_physics"] = 1.0 - cpu["interactions_per_cpu_s"] / bare
+    return out
+
+
+def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:
+    return {"interactions_per_s": cpu["interactions_per_s"], "interactions_per_cpu_s": cpu["interactions_per_cpu_s"],
+            "physics_steps_per_s": cpu["interactions_per_s"] * substeps,
+            **{k: cpu[k] for k in ("reset_ms_mean", "reset_ms_max", "load_average_1min")}}
+
+
+def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:
+    import jax
+
+    from dojo.backends.mjx.bucket import make_buckets
+    from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+
+    if "streams" in modes:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
+    enable_compilation_cache(cfg.get("cache_dir"))
+    impl = choose_impl(backend.get("impl"))
+    log.info("mjx: %s", describe_impl(impl))
+    if jax.default_backend() == "cpu" and modes != ("cpu",):
+        log.warning("backend=mjx on a CPU: expect minutes of compilation per task; backend=mujoco measures the "
+                    "CPU backend")
+    steps, warmup = int(cfg.get("steps", 20)), int(cfg.get("warmup", 3))
+    start = time.perf_counter()
+    plans = load_plans(cfg)
+    buckets = make_buckets(plans)
+    log.info("%d plans in %d buckets (%.1f s)", len(plans), len(buckets), time.perf_counter() - start)
+    sizes = split_batch(buckets, int(cfg.get("num_envs", len(buckets))))
+    out: dict[str, Any] = {
+        "what": "sim", "backend": "mjx", "impl": impl, "num_envs": sum(sizes), "steps": steps,
+        "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "buckets": len(buckets),
+        "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
+        "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
+    }
+    if "heterogeneous" in modes:
+        out["heterogeneous"] = _rates([_run(buckets, sizes, impl, steps, warmup)])
+        peak = _peak_memory()
+        out["peak_device_bytes_per_env"] = None if peak is None else peak / sum(sizes)
+    if "homogeneous" in modes:
+        out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup) for b, n in zip(buckets, sizes)])
+    if "streams" in modes:
+        from dojo.backends.mjx.streams import measure_streams
+
+        if impl != "warp":
+            raise ValueError("bench sim mode 'streams' runs MuJoCo Warp: it needs backend.impl=warp on an NVIDIA GPU")
+
+        controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
+        out["streams"] = measure_streams(buckets, sizes, controls, steps, warmup)
+    if "cpu" in modes:
+        from dojo.backends.mujoco.bench import measure_cpu
+
+        cpu_envs, cpu_steps = int(cfg.get("cpu_envs", 8)), int(cfg.get("cpu_steps", 10))
+        cpu = measure_cpu(plans, cpu_envs, cpu_steps, resets=1)
+        substeps = float(np.mean([p.n_substeps for p in plans]))
+        out["cpu"] = {"backend": "mujoco", "num_envs": cpu_envs, "steps": cpu_steps, "threads": cpu["threads"],
+                      **_cpu_figures(cpu, substeps)}
+    ratios = {}
+    for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu"),
+                 ("streams", "homogeneous"), ("streams", "heterogeneous")):
+        if a in out and b in out:
+            ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
+    out["ratios"] = ratios
+    return out

@@ -1,0 +1,216 @@
+"""`dojo run`: compile (or reuse) a suite's plans, evaluate a policy on them, print the scores.
+
+With no arguments it runs the built-in default suite with the built-in reference policy on the CPU backend.
+Results go to `results.sqlite` in the run's output folder, which Hydra names after the suite, the policy and the
+overrides, so re-running the same command resumes the same run. `record=head|all` films every episode into the
+output folder's `videos/` (and saves its trajectory under `trajectories/`); the report links the videos.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from functools import partial
+from pathlib import Path
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from omegaconf import DictConfig, OmegaConf
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from dojo.backends.base import Backend
+from dojo.backends.mujoco.render import ensure_headless_gl
+from dojo.backends.registry import factory_from_config
+
+from dojo.evaluation.camera_budget import budget_message, image_size, images_per_second
+from dojo.evaluation.evaluate import QueuedEpisode, evaluate, run_id_for
+from dojo.evaluation.policy_link import PRIVILEGED_NOTE, is_privileged, policy_config_for
+from dojo.evaluation.recorder import EpisodeRecorder, record_cameras
+
+if TYPE_CHECKING:
+    from dojo.compiler.suite_compile import CompileStats
+
+DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
+
+
+def _queue(stats: CompileStats, split: str) -> list[QueuedEpisode]:
+    """The compiled suite's episodes, in protocol order, for the evaluation loop."""
+    return [QueuedEpisode(plan_path=p.plan_path, plan_hash=p.plan_hash, task=p.episode.task,
+                          dimension=p.episode.dimension, setting=p.episode.setting, eval_seed=p.episode.eval_seed,
+                          episode=p.episode.index, scene_seed=p.episode.scene_seed, split=split)
+            for p in stats.episodes]
+
+
+def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
+    """The private seed set a suite names, from the evaluator's secrets file (never from the spec package)."""
+    verification = suite.data.get("verification")
+    if not verification or not cfg.hidden_seeds:
+        return None
+    secrets = json.loads(Path(cfg.hidden_seeds).read_text())
+    if verification["seed_set"] not in secrets:
+        raise KeyError(f"{cfg.hidden_seeds} has no seed set '{verification['seed_set']}'")
+    return [int(s) for s in secrets[verification["seed_set"]]]
+
+
+def _backend_factory(cfg: DictConfig, metadata: Any, cameras: tuple[str, ...], size: tuple[int, int],
+                     plan_paths: dict[str, str] | None = None) -> Callable[[], Backend]:
+    """The configured backend (`backend=<name>`), rendering `cameras` (the policy's plus those being recorded, and
+    no others) at `size`. Only a policy whose metadata says `extra.privileged` (the oracle) gets the simulator
+    state in its observations."""
+    return factory_from_config(OmegaConf.to_container(cfg.backend, resolve=True), cameras=cameras, width=size[0],
+                               height=size[1], privileged=is_privileged(metadata), plan_paths=plan_paths)
+
+
+def run_task(cfg: DictConfig) -> int:
+    """The `dojo run` job."""
+    ensure_headless_gl()
+    from hydra.core.hydra_config import HydraConfig
+
+    from dojo.compiler.plan import Plan
+    from dojo.compiler.horizon import horizons_file, load_demo_lengths
+    from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.suite_compile import compile_suite
+    from dojo.compiler.taxonomy import taxonomy_of
+
+    from dojo.evaluation.policy_link import open_policy
+    from dojo.evaluation.progress import Progress
+    from dojo.report.make_report import write_report
+    from dojo.evaluation.results_store import ResultsStore
+    from dojo.report.scoring import score_episodes
+
+    library = SpecLibrary.load([Path(p) for p in cfg.packs])
+    suite = library.get("suite", cfg.suite.id)
+    seeds = list(cfg.seeds) if cfg.seeds is not None else None
+    plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
+    tasks = list(cfg.tasks) if cfg.tasks is not None else None
+    demos = load_demo_lengths(horizons_file(cfg.horizons))
+    stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
+                          demo_lengths=demos, tasks=tasks)
+    queue = _queue(stats, "public")
+    hidden = _hidden_seeds(cfg, suite)
+    if hidden:
+        hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
+        count = suite.data["verification"].get("episodes", 10)
+        hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
+                                     demo_lengths=demos, tasks=tasks)
+        queue += _queue(hidden_stats, "hidden")
+
+    embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
+    policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    if isinstance(policy_cfg.get("url"), list) and len(policy_cfg["url"]) > 1 and cfg.launcher.name != "ray":
+        raise ValueError(f"policy.url lists {len(policy_cfg['url'])} servers, one per worker of launcher=ray; "
+                         "launcher=local talks to one")
+    policy = open_policy(policy_config_for(policy_cfg, 0), embodiment)  # type: ignore[arg-type]
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    store_path = Path(cfg.results) if cfg.results else out_dir / "results.sqlite"
+    identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_cfg,
+                "backend": cfg.backend.name, "seeds": seeds, "episodes": cfg.episodes, "hidden": bool(hidden)}
+    if tasks is not None:  # only when set: the ids of runs of whole suites stay as they were
+        identity["tasks"] = sorted(tasks)
+    run_id = run_id_for(identity)
+    robot_cameras = Plan.load(queue[0].plan_path).cameras if queue and cfg.record != "none" else []
+    recorded = record_cameras(str(cfg.record), robot_cameras) if robot_cameras else ()
+    meta = policy.metadata
+    cameras = tuple(meta.cameras) + tuple(c for c in recorded if c not in meta.cameras)
+    width, height, size_warning = image_size(meta, cfg.width, cfg.height)
+    action_mode = meta.action_mode  # not the policy link itself: a Ray worker gets a copy of this factory
+    recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=action_mode,
+                                                relative_to=store_path.parent)) if recorded else None
+    try:
+        with ResultsStore(store_path) as store:
+            store.ensure_run(run_id, identity)
+            finished = store.rows(run_id)
+            if cfg.progress != "quiet":
+                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id))
+            with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
+                plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
+                timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
+                if cfg.launcher.name == "ray":
+                    _evaluate_on_ray(cfg, queue, policy_cfg, embodiment, run_id, store, progress, plan_paths,
+                                     timeout, (meta, cameras, (width, height)), recorder_factory)
+                else:
+                    evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy,
+                             store, run_id, num_envs=int(cfg.num_envs), progress=progress,
+                             episode_timeout_s=timeout, recorder_factory=recorder_factory)
+            rows = store.rows(run_id)
+    finally:
+        policy.close()
+    public = [r for r in rows if r.split == "public"]
+    taxonomy = taxonomy_of(library)
+    _print_scores(score_episodes(public, taxonomy=taxonomy), run_id, store_path, quiet=cfg.progress == "jsonl",
+                  privileged=is_privileged(meta))
+    if cfg.report:
+        report_path = Path(cfg.report)
+        write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
+        print(f"report: {report_path} and {report_path.with_suffix('.html')}")
+    return 0
+
+
+def _evaluate_on_ray(cfg: DictConfig, queue: list[QueuedEpisode], policy_cfg: dict[str, Any], embodiment: str,
+                     run_id: str, store: Any, progress: Any, plan_paths: dict[str, str], timeout: float | None,
+                     rendering: tuple[Any, tuple[str, ...], tuple[int, int]], recorder_factory: Any) -> int:
+    """`launcher=ray`: the episodes over the workers of a Ray cluster (launch_ray), each building the backend this
+    process would (with its own share of threads) and opening its own policy link."""
+    from dojo.launch.ray_launcher import RayOptions, WorkerJob, evaluate_on_ray
+
+    options = RayOptions.of(OmegaConf.to_container(cfg.launcher, resolve=True), str(cfg.backend.name))
+    settings = options.backend_settings(OmegaConf.to_container(cfg.backend, resolve=True))  # type: ignore[arg-type]
+    backend = OmegaConf.create({"backend": settings})
+    job = WorkerJob(run_id=run_id, backend_for=partial(_backend_factory, backend, *rendering), policy=policy_cfg,
+                    embodiment=embodiment, num_envs=int(cfg.num_envs), plan_paths=plan_paths,
+                    episode_timeout_s=timeout, recorder_factory=recorder_factory)
+    return evaluate_on_ray(queue, job, store, progress, options)
+
+
+def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,
+                          queue: list[QueuedEpisode], finished: set[tuple[str, int, int]]) -> None:
+    """Before a run that renders cameras: which, at what size, and the most it can cost here (camera_budget)."""
+    console = Console(stderr=True, soft_wrap=True)  # one line each, whatever the terminal's width
+    if warning:
+        console.print(f"[yellow]{escape(warning)}[/yellow]")
+    todo = [q for q in queue if (q.plan_hash, q.eval_seed, q.episode) not in finished]
+    if not cameras or not todo:
+        return
+    from dojo.compiler.plan import Plan
+
+    plans: dict[str, Any] = {}
+    for item in todo:  # one plan per task: the horizon is the task's
+        if item.task not in plans:
+            plans[item.task] = Plan.load(item.plan_path)
+    rate = images_per_second(plans[todo[0].task], cameras, *size)
+    console.print(escape(budget_message(meta, cameras, *size, [plans[q.task].horizon for q in todo], rate)),
+                  highlight=False)
+
+
+def _print_scores(scores: Any, run_id: str, store_path: Path, quiet: bool, privileged: bool = False) -> None:
+    """The leaderboard view of one run: per task, per dimension, and overall (mean over dimensions). A privileged
+    policy's table says that it is a reference, not a score to compare with."""
+    if quiet:
+        print(json.dumps({"run_id": run_id, "results": str(store_path), "scores": scores.to_dict(),
+                          "privileged": privileged}, default=str))
+        return
+
+    def fmt(stat: Any) -> str:
+        return f"{stat.mean:.1f}" + (f" ± {stat.std:.1f}" if stat.std is not None else "")
+
+    table = Table(title=escape(f"run {run_id}" + (" (privileged reference)" if privileged else "")))
+    for column in ("task", "dimension", "episodes", "success %", "score"):
+        table.add_column(column, justify="left" if column in ("task", "dimension") else "right")
+    for task in scores.tasks:  # names come from specs (third-party packs too): never read them as markup
+        table.add_row(escape(task.task), task.dimension, str(task.episodes), fmt(task.metrics.success),
+                      fmt(task.metrics.score))
+    table.add_section()
+    for name, dim in scores.dimensions.items():
+        table.add_row(f"[bold]{name}", f"{len(dim.tasks)} tasks", "", fmt(dim.metrics.success),
+                      fmt(dim.metrics.score))
+    table.add_section()
+    label = "overall (partial)" if scores.partial else "overall"
+    table.add_row(f"[bold]{label}", "mean of dimensions", "", fmt(scores.overall.success), fmt(scores.overall.score))
+    console = Console()
+    console.print(table)
+    if privileged:  # one unwrapped line, so that it reads (and greps) the same at any terminal width
+        print(f"{PRIVILEGED_NOTE}: these are the tasks' scripted experts, showing that the tasks are solvable; "
+              "evaluate a policy with policy=remote policy.url=ws://HOST:PORT", flush=True)
+    console.print(f"results: {store_path}", markup=False, soft_wrap=True)

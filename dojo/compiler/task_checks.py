@@ -1,0 +1,119 @@
+"""Checks of a task spec that a JSON Schema cannot express: names used in one place must be defined in another.
+
+A predicate that names an object the scene does not have would otherwise only fail when the plan is compiled,
+or worse, evaluate to a constant: these checks make it a located error at `dojo validate` time.
+"""
+
+from __future__ import annotations
+
+import string
+from dojo.language import predicates as predicate_words
+
+from dojo.compiler.spec_errors import JsonPath, did_you_mean
+
+Problem = tuple[JsonPath, str, bool]  # (path, message, points at the key rather than the value)
+
+BUILTIN_NAMES = {"table"}
+
+
+def _defined_names(task: dict) -> tuple[set[str], set[str], set[str]]:
+    scene = task["scene"]
+    objects: set[str] = set()
+    groups: set[str] = set()
+    for entry in scene.get("fixtures", []) + scene["objects"]:
+        objects.add(entry["name"])
+        count = entry.get("count", 1)
+        if count > 1:
+            objects.update(f"{entry['name']}_{i}" for i in range(count))
+        if "group" in entry:
+            groups.add(entry["group"])
+    regions = set(scene.get("regions", {}))
+    return objects, groups, regions
+
+
+def task_problems(task: dict) -> list[Problem]:
+    """Every undefined or duplicated name in a (schema-valid) task spec."""
+    problems: list[Problem] = []
+    objects, groups, regions = _defined_names(task)
+    scene = task["scene"]
+
+    seen: set[str] = set()
+    for section in ("fixtures", "objects"):
+        for i, entry in enumerate(scene.get(section, [])):
+            name = entry["name"]
+            if name in seen:
+                problems.append((("scene", section, i, "name"), f"duplicate object name '{name}'", False))
+            seen.add(name)
+            if "region" in entry and entry["region"] not in regions:
+                problems.append((("scene", section, i, "region"),
+                                 f"unknown region '{entry['region']}'{did_you_mean(entry['region'], regions)}", False))
+            if "region" not in entry and "pos" not in entry:
+                problems.append((("scene", section, i), f"object '{name}' needs a region or a pos", False))
+    for name, region in scene.get("regions", {}).items():
+        if "on" in region and region["on"] not in objects:
+            problems.append((("scene", "regions", name, "on"),
+                             f"unknown fixture '{region['on']}'{did_you_mean(region['on'], objects)}", False))
+    if "clutter_region" in scene and scene["clutter_region"] not in regions:
+        problems.append((("scene", "clutter_region"), f"unknown region '{scene['clutter_region']}'"
+                                                      f"{did_you_mean(scene['clutter_region'], regions)}", False))
+
+    stage_names: set[str] = set()
+    for i, stage in enumerate(task.get("stages", [])):
+        if stage["name"] in stage_names:
+            problems.append((("stages", i, "name"), f"duplicate stage name '{stage['name']}'", False))
+        stage_names.add(stage["name"])
+
+    placeable = objects | regions | BUILTIN_NAMES
+    predicates: list[tuple[JsonPath, dict]] = [(("success",), task["success"])]
+    predicates += [(("stages", i, "when"), s["when"]) for i, s in enumerate(task.get("stages", []))]
+    for path, pred in predicates:
+        (op, arg), = pred.items()
+        for ref_path, name, role, quantified in predicate_words.references(op, arg, path, False):
+            if role == "group":
+                if name not in groups:
+                    problems.append((ref_path, f"unknown group '{name}'{did_you_mean(name, groups)}", False))
+                continue
+            base = name.split("/", 1)[0]
+            if base == "_":
+                if not quantified:
+                    problems.append((ref_path, "'_' stands for the quantified object: use it inside forall/exists",
+                                     False))
+            elif base not in placeable:
+                problems.append((ref_path, f"unknown object or region '{base}'{did_you_mean(base, placeable)}", False))
+
+    for slot, spec in task.get("slots", {}).items():
+        if "object" in spec and spec["object"] not in objects:
+            problems.append((("slots", slot, "object"),
+                             f"unknown object '{spec['object']}'{did_you_mean(spec['object'], objects)}", False))
+        if "object" not in spec and "choices" not in spec:
+            problems.append((("slots", slot), f"slot '{slot}' needs an object or choices", True))
+    placeholders = _placeholders(task["instruction"])
+    if placeholders is None:
+        problems.append((("instruction",), "unbalanced '{' or '}' (write {slot} for a placeholder)", False))
+    for slot in placeholders or []:
+        if slot not in task.get("slots", {}):
+            problems.append((("instruction",), f"placeholder '{{{slot}}}' has no entry in slots", False))
+
+    for i, step in enumerate(task.get("expert", [])):
+        for key in ("object", "target"):
+            name = step.get(key)
+            if name is not None and name.split("/", 1)[0] not in placeable | {"_"}:
+                base = name.split("/", 1)[0]
+                problems.append((("expert", i, key),
+                                 f"unknown object or region '{base}'{did_you_mean(base, placeable)}", False))
+        if "for_each" in step and step["for_each"] not in groups:
+            problems.append((("expert", i, "for_each"),
+                             f"unknown group '{step['for_each']}'{did_you_mean(step['for_each'], groups)}", False))
+    for i, entry in enumerate(scene["objects"]):
+        if "hidden_after" in entry and entry["hidden_after"] not in stage_names:
+            problems.append((("scene", "objects", i, "hidden_after"), f"unknown stage '{entry['hidden_after']}'"
+                                                                      f"{did_you_mean(entry['hidden_after'], stage_names)}", False))
+    return problems
+
+
+def _placeholders(text: str) -> list[str] | None:
+    """The `{slot}` names of an instruction, or None when its braces are unbalanced."""
+    try:
+        return [name for _, name, _, _ in string.Formatter().parse(text) if name is not None]
+    except ValueError:
+        return None

@@ -1,0 +1,235 @@
+"""The evaluation loop: plans in, one durable result row per episode out.
+
+Environments run in slots of one backend. Each slot plays one episode: the policy is reset for it, asked for an
+action chunk whenever the slot has none left, and the chunk is executed one control step at a time. When an
+episode ends (success, horizon, a non-finite action, its wall-clock timeout, the policy failing on it) its row
+is written to the results store at once, and the slot is refilled with the next queued episode, whatever its
+task: the batch stays full and different tasks run side by side (continuous batching). Images are rendered only
+for slots whose chunk has run out; the next plans are prefetched so that refills do not wait on compilation.
+
+Resume: a run's id is derived from what it evaluates (suite, policy identity, backend, seeds, episode counts),
+so re-running the same command finds the same run in the store and skips every episode already recorded. An
+interrupted run loses at most the episodes that were still in flight; those are re-run from their start.
+
+Launchers: the loop does not care where its episodes come from or where its rows go. `store` is anything with
+`finished()` and `add_many()` and `progress` anything with `episode_finished()` and `interactions()`, and with
+`more` the loop pulls further episodes as its slots free up, so that a Ray worker (`launch_ray`) runs this same
+loop on episodes it pulls from the driver and streams its rows back, instead of a copy of it.
+
+Recording (optional): with a `recorder_factory`, every slot gets a recorder that sees each observation and the
+action taken from it, and whose video path goes into the episode's row. The backend may then render cameras the
+policy did not ask for; the policy is shown only its own (`metadata.cameras`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from dojo.backends.base import Backend
+from xpolicylab.errors import ErrorCode, ProtocolError
+from dojo.compiler.plan import Plan
+
+from dojo.evaluation.episode import EpisodeKey, EpisodeResult
+from dojo.evaluation.policy_link import PolicyLink
+from dojo.evaluation.recorder import SlotRecorder
+
+TIMEOUT = "timeout"
+POLICY_ERROR = "policy_error"
+
+
+@dataclass(frozen=True)
+class QueuedEpisode:
+    """One episode to run: its plan file and its place in the protocol."""
+
+    plan_path: Path
+    plan_hash: str
+    task: str
+    dimension: str
+    setting: str
+    eval_seed: int
+    episode: int
+    scene_seed: int
+    split: str = "public"
+
+
+@dataclass
+class _Slot:
+    item: QueuedEpisode
+    plan: Plan
+    started: float
+    chunk: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    score: float = 0.0  # progress so far, for an episode that ends between steps (a policy error)
+    steps: int = 0
+    stage_times: dict[str, int | None] = field(default_factory=dict)
+    terms: dict[str, bool] = field(default_factory=dict)
+
+
+class RowSink(Protocol):
+    """Where finished episodes go: the results store, or a worker's link to the driver that writes them."""
+
+    def finished(self, run_id: str) -> set[EpisodeKey]:
+        """Keys of the episodes already recorded (skipped)."""
+
+    def add_many(self, results: Sequence[EpisodeResult]) -> int:
+        """Record episodes that ended together; return how many were new."""
+
+
+class ProgressSink(Protocol):
+    """What the loop reports as it goes: a `Progress`, or a worker's counter sent to the driver's."""
+
+    def episode_finished(self, row: EpisodeResult) -> None: ...
+
+    def interactions(self, n: int) -> None: ...
+
+
+def run_id_for(identity: dict[str, Any]) -> str:
+    """A stable id for what a run evaluates: the same command resumes the same run."""
+    digest = hashlib.sha256(json.dumps(identity, sort_keys=True, default=str).encode()).hexdigest()
+    return f"{identity.get('suite', 'run')}-{identity.get('policy', 'policy')}-{digest[:12]}"
+
+
+def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
+             store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
+             episode_timeout_s: float | None = None,
+             recorder_factory: Callable[[], SlotRecorder] | None = None,
+             more: Callable[[int], list[QueuedEpisode]] | None = None) -> int:
+    """Run every queued episode not yet in the store for `run_id`; return how many were run now.
+
+    `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
+    ([] when there are none now): episodes are taken only when a slot can start them, so a worker of a launcher
+    never holds episodes that another, idle worker could be running."""
+    finished = store.finished(run_id)
+    todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
+    if more is not None and len(todo) < num_envs:
+        todo.extend(more(num_envs - len(todo)))
+    if not todo:
+        return 0
+    meta = policy.metadata
+    policy_meta = meta.to_dict()
+    backend = backend_factory()
+    plans: dict[Path, Plan] = {}
+
+    def plan_of(item: QueuedEpisode) -> Plan:
+        if item.plan_path not in plans:  # each plan file is read once; the backend caches compiled models
+            plans[item.plan_path] = Plan.load(item.plan_path)
+        return plans[item.plan_path]
+
+    first = [todo.popleft() for _ in range(min(num_envs, len(todo)))]
+    slots: dict[int, _Slot] = {i: _Slot(item, plan_of(item), time.monotonic()) for i, item in enumerate(first)}
+    recorders = {i: recorder_factory() for i in slots} if recorder_factory else {}
+    ran = 0
+
+    def finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
+        """Record ended episodes (durably, before anything else happens to their slots), then refill the slots
+        from the queue or retire them."""
+        nonlocal ran
+        now = time.monotonic()
+        rows = []
+        for i, success, reason in ended:
+            video = recorders[i].finish(last_obs[i], success)[0] if recorders else None
+            rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video))
+        store.add_many(rows)
+        for row in rows:
+            progress.episode_finished(row)
+        ran += len(rows)
+        ids = [i for i, _, _ in ended]
+        if more is not None and len(todo) < len(ids):
+            todo.extend(more(len(ids) - len(todo)))
+        refill = ids[:len(todo)]
+        for i in ids[len(refill):]:
+            del slots[i]
+        if refill:
+            items = [todo.popleft() for _ in refill]
+            for i, item in zip(refill, items):
+                slots[i] = _Slot(item, plan_of(item), time.monotonic())
+                if recorders:
+                    recorders[i].start(item, slots[i].plan)
+            for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
+                obs[i] = first_obs
+            policy.reset(refill)
+            backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
+
+    try:
+        for i, rec in recorders.items():
+            rec.start(slots[i].item, slots[i].plan)
+        backend.load([s.plan for s in slots.values()])
+        obs = dict(zip(slots, backend.reset(list(slots))))
+        policy.reset(list(slots))
+        backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
+        while slots:
+            need = [i for i, s in slots.items() if len(s.chunk) == 0]
+            if need:
+                try:
+                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
+                except ProtocolError as err:
+                    if err.code != ErrorCode.INFER_FAILED:
+                        raise  # the link itself failed: stop, and resume these episodes later
+                    finish([(i, False, f"{POLICY_ERROR}: {err}") for i in need], obs)  # the policy failed on them
+                    continue
+                for i, chunk in zip(need, chunks):
+                    slots[i].chunk = np.asarray(chunk, np.float32).reshape(-1, chunks.shape[-1])
+            ids = sorted(slots)
+            actions = np.stack([slots[i].chunk[0] for i in ids])
+            for k, i in enumerate(ids):
+                slots[i].chunk = slots[i].chunk[1:]
+                if recorders:
+                    recorders[i].add(obs[i], actions[k])
+            # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
+            observe = ids if recorders else [i for i in ids if len(slots[i].chunk) == 0]
+            result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
+            progress.interactions(len(ids))
+            now = time.monotonic()
+            ended = []
+            for k, i in enumerate(ids):
+                obs[i] = result.obs[k]
+                slot = slots[i]
+                slot.score, slot.steps, slot.stage_times = float(result.score[k]), int(result.steps[k]), \
+                    dict(result.stage_times[k])
+                slot.terms = dict(result.terms[k]) if result.terms else {}
+                timed_out = episode_timeout_s is not None and now - slot.started > episode_timeout_s
+                if result.done[k] or timed_out:
+                    success = bool(result.success[k])
+                    ended.append((i, success, None if success else (result.end_reason[k] or TIMEOUT)))
+            if ended:
+                finish(ended, obs)
+    finally:
+        for rec in recorders.values():
+            rec.discard()  # only episodes still in flight have files open
+        backend.close()
+    return ran
+
+
+def _with_episode(obs: dict[str, Any], slot: _Slot, cameras: tuple[str, ...]) -> dict[str, Any]:
+    """The runtime numbers episodes; the backend only knows the scene seed. Images of cameras rendered only for
+    recording are not the policy's to see."""
+    meta = dict(obs.get("meta", {}))
+    meta["episode"] = slot.item.episode
+    out = {**obs, "meta": meta}
+    for key in ("images", "depth"):
+        if key in obs:
+            seen = {c: v for c, v in obs[key].items() if c in cameras}
+            if seen:
+                out[key] = seen
+            else:
+                del out[key]
+    return out
+
+
+def _row(run_id: str, slot: _Slot, success: bool, reason: str | None, policy_name: str,
+         policy_meta: dict[str, Any], now: float, video_path: str | None) -> EpisodeResult:
+    item = slot.item
+    return EpisodeResult(
+        run_id=run_id, split=item.split, plan_hash=item.plan_hash, task=item.task, dimension=item.dimension,
+        setting=item.setting, eval_seed=item.eval_seed, episode=item.episode, scene_seed=item.scene_seed,
+        policy_name=policy_name, policy_meta=policy_meta, success=success, score=slot.score, steps=slot.steps,
+        wall_time_s=now - slot.started, stage_times=slot.stage_times, failure_reason=reason,
+        video_path=video_path, success_terms=slot.terms)

@@ -1,0 +1,1 @@
+"""Spreading one run's episodes over workers (Ray) without losing or repeating any."""

@@ -1,0 +1,1 @@
+"""`dojo validate --strict`: the checks a contributed task pack must pass, the work they run and their report."""

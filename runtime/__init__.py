@@ -1,1 +1,0 @@
-"""The runtime: the `dojo` command line, the evaluation loop, results, scoring and reports."""
