@@ -47,6 +47,8 @@ class StepResult:
     None; an episode's `failure_reason` is its end reason unless it succeeded. `clipped[i]` counts the action
     elements clipped to limits in this step, `clipped_total[i]` in the whole episode. `terms[i]` maps each
     success term (`ProgramLayout.term_names`) to whether it holds now (empty for a backend that does not say).
+    `counters[i]` holds the backend's own counts over the episode so far, by name (empty for a backend that keeps
+    none; the `real` backend: its safety layer's clips and refusals), recorded with the episode.
     """
 
     env_ids: np.ndarray
@@ -60,12 +62,15 @@ class StepResult:
     clipped: np.ndarray
     clipped_total: np.ndarray
     terms: list[dict[str, bool]] = field(default_factory=list)
+    counters: list[dict[str, int]] = field(default_factory=list)
 
 
 class Backend(ABC):
     """A simulator (or robot) that runs plans in `num_envs` slots. Use as a context manager or call close()."""
 
     name: ClassVar[str]
+    max_envs: ClassVar[int | None] = None
+    """The most slots the backend can hold (None: as many as asked); the evaluation loop runs no more. A robot: 1."""
 
     @property
     @abstractmethod

@@ -58,6 +58,9 @@ class EpisodeResult:
     success_terms: dict[str, bool] = field(default_factory=dict)
     """Each condition of the task's success predicate at the episode's end (which one failed), when the backend
     says (the `mujoco` backend does)."""
+    counters: dict[str, int] = field(default_factory=dict)
+    """The backend's own counts over the episode, when it keeps any (the `real` backend: every command its safety
+    layer clipped or refused, by kind, and its watchdog's holds), so that a trial's record says how it was run."""
 
     def __post_init__(self) -> None:
         """Validate, and normalise numpy scalars (backends produce them) to plain Python values, so that what is
@@ -96,6 +99,9 @@ class EpisodeResult:
         if not all(isinstance(k, str) and isinstance(v, (bool, np.bool_)) for k, v in self.success_terms.items()):
             raise ValueError("EpisodeResult.success_terms must map condition names to bools")
         self._set("success_terms", {k: bool(v) for k, v in self.success_terms.items()})
+        if not all(isinstance(k, str) for k in self.counters):
+            raise ValueError("EpisodeResult.counters must map counter names to integers")
+        self._set("counters", {k: _integer(f"counters[{k!r}]", v) for k, v in self.counters.items()})
 
     def _set(self, name: str, value: Any) -> None:
         object.__setattr__(self, name, value)  # the dataclass is frozen; this runs only during construction

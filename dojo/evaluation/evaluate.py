@@ -71,6 +71,7 @@ class _Slot:
     steps: int = 0
     stage_times: dict[str, int | None] = field(default_factory=dict)
     terms: dict[str, bool] = field(default_factory=dict)
+    counters: dict[str, int] = field(default_factory=dict)
 
 
 class RowSink(Protocol):
@@ -116,6 +117,8 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
     meta = policy.metadata
     policy_meta = meta.to_dict()
     backend = backend_factory()
+    if backend.max_envs is not None:  # a robot is one slot, whatever num_envs the run was given
+        num_envs = min(num_envs, backend.max_envs)
     plans: dict[Path, Plan] = {}
 
     def plan_of(item: QueuedEpisode) -> Plan:
@@ -195,6 +198,7 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
                 slot.score, slot.steps, slot.stage_times = float(result.score[k]), int(result.steps[k]), \
                     dict(result.stage_times[k])
                 slot.terms = dict(result.terms[k]) if result.terms else {}
+                slot.counters = dict(result.counters[k]) if result.counters else {}
                 timed_out = episode_timeout_s is not None and now - slot.started > episode_timeout_s
                 if result.done[k] or timed_out:
                     success = bool(result.success[k])
@@ -232,4 +236,4 @@ def _row(run_id: str, slot: _Slot, success: bool, reason: str | None, policy_nam
         setting=item.setting, eval_seed=item.eval_seed, episode=item.episode, scene_seed=item.scene_seed,
         policy_name=policy_name, policy_meta=policy_meta, success=success, score=slot.score, steps=slot.steps,
         wall_time_s=now - slot.started, stage_times=slot.stage_times, failure_reason=reason,
-        video_path=video_path, success_terms=slot.terms)
+        video_path=video_path, success_terms=slot.terms, counters=slot.counters)

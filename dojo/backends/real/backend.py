@@ -9,7 +9,8 @@ driver reports it, end-effector poses by forward kinematics of the reported join
 What the robot cannot know is left to the RealEval protocol: success and score are given by the raters
 afterwards (a step reports neither; stage times stay unset), so an episode ends at its horizon, or on a
 non-finite action as in simulation. `clipped` counts the step's clips and refusals (safety layer and IK goal);
-the safety layer's own counters (watchdog holds included) are `backend.safety.counters`.
+the safety layer's own counters (watchdog holds included) are `backend.safety.counters`, reported with every
+step (`StepResult.counters`) so that each trial's row in the results store keeps them.
 
 `driver="emulator"` (the default) runs the plan's own scene in the emulator (`EmulatedRobot`), through the
 maker's SDK as on hardware; a reset puts the scene at the plan's initial state, as the operator would.
@@ -49,6 +50,7 @@ class RealBackend(Backend):
     """One robot (or its emulator), one slot. See the module docstring for what a step does."""
 
     name = "real"
+    max_envs = 1
 
     def __init__(self, driver: str = "emulator", can: str | Sequence[str] | None = None,
                  cameras: Sequence[str] = (), width: int = 640, height: int = 480, depth: bool = False,
@@ -235,6 +237,7 @@ class RealBackend(Backend):
             done=np.full(n, self._done), steps=np.full(n, self._step, dtype=np.int32),
             stage_times=[dict.fromkeys(stages) for _ in range(n)], end_reason=[self._end_reason] * n,
             clipped=np.full(n, clipped, dtype=np.int32), clipped_total=np.full(n, self._clipped_total, dtype=np.int32),
+            counters=[dict(self.safety.counters) for _ in range(n)] if self.safety is not None else [],
         )
 
     def close(self) -> None:
