@@ -1,7 +1,8 @@
 """Backends by name: `make_backend("mujoco", options)` builds any backend, so no caller constructs one by hand.
 
-A backend is one subpackage of `dojo.backends` whose `__init__` defines `make(options: BackendOptions) -> Backend`,
-plus one Hydra config file (`dojo/cli/config/backend/<name>.yaml`) whose keys other than `name` reach `make` as
+A backend is one subpackage of `dojo.backends` whose `__init__` defines `make(options: BackendOptions) -> Backend`
+and `unsupported(features, settings) -> {feature: reason}` (which of a plan's `requires` it cannot run), plus one
+Hydra config file (`dojo/cli/config/backend/<name>.yaml`) whose keys other than `name` reach `make` as
 `options.settings`. The runtime names a backend by its config; this module imports the package only when asked,
 so choosing `mujoco` never imports JAX.
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +48,18 @@ def make_backend(name: str, options: BackendOptions) -> Backend:
     if make is None:
         raise ValueError(f"dojo.backends.{name} defines no make(options): it is not a backend")
     return make(options)
+
+
+def unsupported_features(name: str, features: Sequence[str], settings: Mapping[str, Any]) -> dict[str, str]:
+    """Each of `features` (a plan's `requires`) that backend `name`, configured with `settings`, cannot run,
+    with its reason. Every backend package answers through its `unsupported(features, settings)`, without being
+    built, so a run can send a plan elsewhere before it starts."""
+    if name not in available():
+        raise ValueError(f"unknown backend {name!r}; one of {', '.join(available())}")
+    answer = getattr(importlib.import_module(f"dojo.backends.{name}"), "unsupported", None)
+    if answer is None:
+        raise ValueError(f"dojo.backends.{name} defines no unsupported(features, settings): it is not a backend")
+    return dict(answer(list(features), settings))
 
 
 def backend_factory(name: str, options: BackendOptions) -> Callable[[], Backend]:

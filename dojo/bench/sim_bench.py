@@ -42,8 +42,8 @@ COUNTS = {"interactions": "control steps: one action applied in one environment"
 log = logging.getLogger(__name__)
 
 
-def load_plans(cfg: dict[str, Any], backend: str = "mjx") -> list[Any]:
-    """Plans from `cfg['plans']` (a folder of plan files, filtered by `tasks`), else compiled for `backend`:
+def load_plans(cfg: dict[str, Any]) -> list[Any]:
+    """Plans from `cfg['plans']` (a folder of plan files, filtered by `tasks`), else compiled:
     `episodes` standard-setting seeds of each task in `tasks` (every built-in task when empty)."""
     from dojo.compiler.plan import Plan, compile_plan
     from dojo.compiler.spec_library import SpecLibrary
@@ -63,7 +63,7 @@ def load_plans(cfg: dict[str, Any], backend: str = "mjx") -> list[Any]:
         return plans
     library = SpecLibrary.load([Path(p) for p in cfg.get("packages", [])])
     tasks = tasks or sorted(s.id for s in library.of_kind("task"))
-    return [compile_plan(library, library.get("task", t), "standard", seed, backend=backend)
+    return [compile_plan(library, library.get("task", t), "standard", seed)
             for t in tasks for seed in range(int(cfg.get("episodes") or 2))]
 
 
@@ -176,7 +176,7 @@ def bench_cpu(cfg: dict[str, Any], num_envs: int, steps: int) -> dict[str, Any]:
     from dojo.backends.mujoco.bench import measure_cpu
 
     start = time.perf_counter()
-    plans = load_plans(cfg, backend="mujoco")
+    plans = load_plans(cfg)
     log.info("%d plans (%.1f s)", len(plans), time.perf_counter() - start)
     cpu = measure_cpu(plans, num_envs, steps, resets=1)
     substeps = float(np.mean([p.n_substeps for p in plans]))

@@ -54,13 +54,29 @@ def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
     return [int(s) for s in secrets[verification["seed_set"]]]
 
 
-def _backend_factory(cfg: DictConfig, metadata: Any, cameras: tuple[str, ...], size: tuple[int, int],
+def _backend_factory(backend: dict[str, Any], metadata: Any, cameras: tuple[str, ...], size: tuple[int, int],
                      plan_paths: dict[str, str] | None = None) -> Callable[[], Backend]:
-    """The configured backend (`backend=<name>`), rendering `cameras` (the policy's plus those being recorded, and
-    no others) at `size`. Only a policy whose metadata says `extra.privileged` (the oracle) gets the simulator
-    state in its observations."""
-    return factory_from_config(OmegaConf.to_container(cfg.backend, resolve=True), cameras=cameras, width=size[0],
-                               height=size[1], privileged=is_privileged(metadata), plan_paths=plan_paths)
+    """The backend `backend` names (the `backend=<name>` config group's content, or the fallback a route chose),
+    rendering `cameras` (the policy's plus those being recorded, and no others) at `size`. Only a policy whose
+    metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
+    return factory_from_config(backend, cameras=cameras, width=size[0], height=size[1],
+                               privileged=is_privileged(metadata), plan_paths=plan_paths)
+
+
+def _routes(cfg: DictConfig, queue: list[QueuedEpisode], quiet: bool) -> list[tuple[dict[str, Any], list[Any]]]:
+    """The run's episodes by the backend that runs them (`dojo.evaluation.routing`), each detour printed."""
+    from dojo.evaluation.routing import route
+
+    chosen = OmegaConf.to_container(cfg.backend, resolve=True)
+    name = str(chosen.pop("name"))  # type: ignore[union-attr]
+    routes, detours = route(queue, name, chosen)  # type: ignore[arg-type]
+    for detour in detours:
+        Console(stderr=True, soft_wrap=True).print(f"[yellow]backend:[/yellow] {escape(detour.message())}",
+                                                   highlight=False)
+    if detours and quiet:
+        for detour in detours:
+            print(json.dumps({"detour": detour.message()}), flush=True)
+    return [({"name": r.backend, **r.settings}, r.episodes) for r in routes]
 
 
 def run_task(cfg: DictConfig) -> int:
@@ -124,16 +140,18 @@ def run_task(cfg: DictConfig) -> int:
             finished = store.rows(run_id)
             if cfg.progress != "quiet":
                 _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id))
+            routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
-                plan_paths = {item.plan_hash: str(item.plan_path) for item in queue}
                 timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
-                if cfg.launcher.name == "ray":
-                    _evaluate_on_ray(cfg, queue, policy_cfg, embodiment, run_id, store, progress, plan_paths,
-                                     timeout, (meta, cameras, (width, height)), recorder_factory)
-                else:
-                    evaluate(queue, _backend_factory(cfg, meta, cameras, (width, height), plan_paths), policy,
-                             store, run_id, num_envs=int(cfg.num_envs), progress=progress,
-                             episode_timeout_s=timeout, recorder_factory=recorder_factory)
+                for backend, episodes in routes:
+                    plan_paths = {item.plan_hash: str(item.plan_path) for item in episodes}
+                    if cfg.launcher.name == "ray":
+                        _evaluate_on_ray(cfg, backend, episodes, policy_cfg, embodiment, run_id, store, progress,
+                                         plan_paths, timeout, (meta, cameras, (width, height)), recorder_factory)
+                    else:
+                        evaluate(episodes, _backend_factory(backend, meta, cameras, (width, height), plan_paths),
+                                 policy, store, run_id, num_envs=int(cfg.num_envs), progress=progress,
+                                 episode_timeout_s=timeout, recorder_factory=recorder_factory)
             rows = store.rows(run_id)
     finally:
         policy.close()
@@ -148,17 +166,17 @@ def run_task(cfg: DictConfig) -> int:
     return 0
 
 
-def _evaluate_on_ray(cfg: DictConfig, queue: list[QueuedEpisode], policy_cfg: dict[str, Any], embodiment: str,
-                     run_id: str, store: Any, progress: Any, plan_paths: dict[str, str], timeout: float | None,
-                     rendering: tuple[Any, tuple[str, ...], tuple[int, int]], recorder_factory: Any) -> int:
-    """`launcher=ray`: the episodes over the workers of a Ray cluster (launch_ray), each building the backend this
-    process would (with its own share of threads) and opening its own policy link."""
+def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[QueuedEpisode], policy_cfg: dict[str, Any],
+                     embodiment: str, run_id: str, store: Any, progress: Any, plan_paths: dict[str, str],
+                     timeout: float | None, rendering: tuple[Any, tuple[str, ...], tuple[int, int]],
+                     recorder_factory: Any) -> int:
+    """`launcher=ray`: the episodes over the workers of a Ray cluster (launch_ray), each building `backend` as
+    this process would (with its own share of threads) and opening its own policy link."""
     from dojo.launch.ray_launcher import RayOptions, WorkerJob, evaluate_on_ray
 
-    options = RayOptions.of(OmegaConf.to_container(cfg.launcher, resolve=True), str(cfg.backend.name))
-    settings = options.backend_settings(OmegaConf.to_container(cfg.backend, resolve=True))  # type: ignore[arg-type]
-    backend = OmegaConf.create({"backend": settings})
-    job = WorkerJob(run_id=run_id, backend_for=partial(_backend_factory, backend, *rendering), policy=policy_cfg,
+    options = RayOptions.of(OmegaConf.to_container(cfg.launcher, resolve=True), str(backend["name"]))
+    settings = options.backend_settings(backend)
+    job = WorkerJob(run_id=run_id, backend_for=partial(_backend_factory, settings, *rendering), policy=policy_cfg,
                     embodiment=embodiment, num_envs=int(cfg.num_envs), plan_paths=plan_paths,
                     episode_timeout_s=timeout, recorder_factory=recorder_factory)
     return evaluate_on_ray(queue, job, store, progress, options)

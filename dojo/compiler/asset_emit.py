@@ -4,11 +4,11 @@ One call of ``add_asset`` adds one instance: a body named after the instance, it
 sites, all prefixed ``<name>/`` so that predicates and skills can find them. Presets (table textures,
 backgrounds, lighting) change materials, the skybox, the floor and lights instead of adding objects.
 
-Backends: rigid and articulated assets compile for both ``mujoco`` and ``mjx``. MJX cannot collide cylinders or
-ellipsoids with boxes and meshes, so colliding cylinders and ellipsoids become convex hull meshes
-(``primitive_hull``) on both backends: the two backends then simulate the same geometry. Cloth uses MuJoCo flex,
-which MJX does not implement (``mjx.put_model`` raises on any flex), so a cloth on ``backend="mjx"`` raises
-``BackendUnsupported`` here, at compile time, rather than deep inside the runtime.
+Backends: the compiler emits one scene for every backend. MJX cannot collide cylinders or ellipsoids with boxes and
+meshes, so colliding cylinders and ellipsoids become convex hull meshes (``primitive_hull``) everywhere: the
+backends then simulate the same geometry. Cloth uses MuJoCo flex, which MJX does not implement; a plan with cloth
+lists ``flex`` in its ``requires`` (``dojo.compiler.plan_features``) and ``dojo run`` sends it to a backend that
+has it, saying so.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from scipy.spatial import ConvexHull
 
 from dojo.compiler.asset_geometry import MJX_UNPAIRED_PRIMITIVES, mesh_hulls, primitive_hull, primitive_volume
 
-BACKENDS = ("mujoco", "mjx")
 DEFAULT_RGBA = (0.6, 0.6, 0.6, 1.0)
 TORSIONAL_FRICTION = 0.005
 ROLLING_FRICTION = 0.0001
@@ -52,10 +51,6 @@ _MARKS = {
 }
 
 
-class BackendUnsupported(ValueError):
-    """The asset cannot be simulated on the requested backend."""
-
-
 @dataclass(frozen=True)
 class AssetHandles:
     """Names of what one ``add_asset`` call created, for predicates, samplers and skills."""
@@ -77,11 +72,6 @@ class AssetHandles:
     flex: str | None = None
     """Flex name for cloth."""
     scale: float = 1.0
-
-
-def _check_backend(backend: str) -> None:
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
 
 
 def _scaled(vec: Sequence[float] | None, scale: float, default: Sequence[float] = (0.0, 0.0, 0.0)) -> list[float]:
@@ -155,7 +145,7 @@ class _Emitter:
 
 def add_asset(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Sequence[float],
               quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0), scale: float = 1.0,
-              rgba: Sequence[float] | None = None, *, base_dir: Path, backend: str = "mujoco") -> AssetHandles:
+              rgba: Sequence[float] | None = None, *, base_dir: Path) -> AssetHandles:
     """Add one instance of ``asset`` (a validated asset spec dict) to ``world`` and return what it created.
 
     ``pos``/``quat`` place the asset frame in the world (its origin is the centre of its footprint, so
@@ -163,7 +153,6 @@ def add_asset(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Seque
     multiplies masses. ``rgba`` replaces the asset's default colour (geoms with their own colour keep it).
     ``base_dir`` is the folder of the asset's YAML, against which mesh paths resolve.
     """
-    _check_backend(backend)
     cls = asset["class"]
     if cls in ("texture", "background", "lighting"):
         raise ValueError(f"asset {asset['id']!r} is a {cls} preset: use apply_table_texture/apply_background/"
@@ -171,7 +160,7 @@ def add_asset(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Seque
     if "/" in name or not name:
         raise ValueError(f"instance name {name!r} must be non-empty and contain no '/'")
     if cls == "cloth":
-        return _add_cloth(world, asset, name, pos, quat, scale, rgba, backend)
+        return _add_cloth(world, asset, name, pos, quat, scale, rgba)
     em = _Emitter(world, asset, name, scale, rgba, Path(base_dir))
     root = world.worldbody.add_body(name=name, pos=[float(p) for p in pos], quat=[float(q) for q in quat])
     base = asset.get("base", "free" if cls == "rigid" else "fixed")
@@ -212,13 +201,8 @@ def add_asset(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Seque
 
 
 def _add_cloth(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Sequence[float], quat: Sequence[float],
-               scale: float, rgba: Sequence[float] | None, backend: str) -> AssetHandles:
+               scale: float, rgba: Sequence[float] | None) -> AssetHandles:
     """A flex grid cloth (MuJoCo's flexcomp), lying flat with its lowest vertices ``radius`` above ``pos``."""
-    if backend == "mjx":
-        raise BackendUnsupported(
-            f"asset {asset['id']!r} is a cloth (MuJoCo flex); MJX does not simulate flex. Evaluate tasks with "
-            "cloth on backend='mujoco' (the CPU reference backend)."
-        )
     c = asset["cloth"]
     radius = float(c.get("radius", 0.004)) * scale
     root = world.worldbody.add_body(name=name, pos=[float(pos[0]), float(pos[1]), float(pos[2]) + radius],

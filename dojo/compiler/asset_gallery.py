@@ -56,20 +56,20 @@ def pack(items: Sequence[Item], gap: float = 0.03) -> list[list[tuple[Item, tupl
     return [t for t in tables if t]
 
 
-def table_scene(table: Item, placed: Sequence[tuple[Item, tuple[float, float]]], *, backend: str = "mujoco",
+def table_scene(table: Item, placed: Sequence[tuple[Item, tuple[float, float]]], *,
                 timestep: float = 0.002) -> tuple[mujoco.MjSpec, dict[str, AssetHandles]]:
     """A spec with the table asset (instance 'table') and the placed assets (instances named by asset id)."""
     spec = mujoco.MjSpec()
     spec.option.timestep = timestep
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0.0, 0.0, 0.05],
                             rgba=[0.3, 0.3, 0.32, 1.0])
-    add_asset(spec, table.asset, "table", (0.0, 0.0, 0.0), base_dir=table.base_dir, backend=backend)
+    add_asset(spec, table.asset, "table", (0.0, 0.0, 0.0), base_dir=table.base_dir)
     handles = {}
     for it, (x, y) in placed:
         lo, _ = asset_bounds(it.asset, it.base_dir)
         z = TABLE_TOP_Z - float(lo[2]) + (DROP_CLEARANCE if it.asset.get("base", "free") == "free" else 0.0)
         name = it.asset["id"]
-        handles[name] = add_asset(spec, it.asset, name, (x, y, z), base_dir=it.base_dir, backend=backend)
+        handles[name] = add_asset(spec, it.asset, name, (x, y, z), base_dir=it.base_dir)
     return spec, handles
 
 

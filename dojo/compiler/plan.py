@@ -29,15 +29,17 @@ from dojo.compiler.horizon import task_horizon
 from dojo.compiler.robot_emit import apply_home
 from dojo.compiler.scene_emit import TABLE_ASSET, emit_scene
 from dojo.compiler.scene_sample import STANDARD_LOOK, LayoutError, SceneInstance, sample_scene, setting_config
+from dojo.compiler.plan_features import plan_features
 from dojo.compiler.scene_settle import settle
 from dojo.compiler.spec_errors import SpecError
 from dojo.compiler.spec_library import Spec, SpecLibrary
 from dojo.compiler.spec_schema import collect_marked
 
 PLAN_FORMAT = "robodojo-plan/1"
-COMPILER_REVISION = 3  # bump when emission changes in a way the versions below do not capture
+COMPILER_REVISION = 4  # bump when emission changes in a way the versions below do not capture
 # (2: scenes settle until at rest, and a layout whose objects slide or tip over while settling is redrawn;
-#  3: plans carry their resolved predicate program, `compiled_program`)
+#  3: plans carry their resolved predicate program, `compiled_program`;
+#  4: plans list the simulator features they use, `requires`, and the compiler no longer takes a backend)
 SETTLE_REDRAWS = 6     # layouts tried per episode before the compiler gives up (scene_settle)
 
 
@@ -69,6 +71,8 @@ class Plan:
     """How the initial state was reached: `redraws` (layouts rejected first) and `seconds` simulated."""
     compiled_program: dict[str, Any] = field(default_factory=dict)
     """`program` resolved against this plan's model (`dojo.backends.program_json`)."""
+    requires: list[str] = field(default_factory=list)
+    """The simulator features the plan uses (`dojo.compiler.plan_features`): what a backend must support to run it."""
     format: str = PLAN_FORMAT
 
     @cached_property
@@ -152,14 +156,14 @@ def plan_hash(library: SpecLibrary, task: Spec, setting: str, seed: int,
     return h.hexdigest()
 
 
-def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, backend: str = "mujoco",
+def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
                  demo_lengths: list[int] | None = None) -> Plan:
     """Sample, emit, compile and settle one episode into a Plan. `demo_lengths` set an `auto` horizon."""
     digest = plan_hash(library, task, setting, seed, demo_lengths)
     robot = library.resolve(task, "robot", task.data["embodiment"])[0]
     for redraw in range(SETTLE_REDRAWS):
         scene: SceneInstance = sample_scene(library, task, setting, seed, redraw)
-        emitted = emit_scene(library, task, robot, scene, backend=backend)
+        emitted = emit_scene(library, task, robot, scene)
         model = emitted.world.compile()
         data = mujoco.MjData(model)
         apply_home(model, data, emitted.robot)
@@ -187,7 +191,7 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *, b
         cameras=list(emitted.robot.cameras), robot=asdict(emitted.robot), objects=objects, regions=regions,
         program=program, init_qpos=_floats(data.qpos), init_qvel=_floats(data.qvel), init_ctrl=_floats(data.ctrl),
         model_xml=emitted.world.to_xml(), scene=scene.to_json(),
-        settle={"redraws": redraw, "seconds": round(settled.seconds, 3)},
+        settle={"redraws": redraw, "seconds": round(settled.seconds, 3)}, requires=plan_features(model, task.data),
     )
     try:
         plan.compiled_program = program_to_json(resolve_program(plan))

@@ -36,8 +36,7 @@ def yaw_quat(yaw_deg: float) -> list[float]:
     return [math.cos(half), 0.0, 0.0, math.sin(half)]
 
 
-def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstance,
-               backend: str = "mujoco") -> EmittedScene:
+def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstance) -> EmittedScene:
     """Build the MjSpec of one sampled scene."""
     world = mujoco.MjSpec()
     world.modelname = f"{scene.task}-{scene.setting}-{scene.seed}"
@@ -53,7 +52,7 @@ def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstan
     apply_background(world, background.data, base_dir=background.path.parent)
     apply_lighting(world, asset(scene.lighting).data)
     table = asset(TABLE_ASSET)
-    add_asset(world, table.data, TABLE_ASSET, (0.0, 0.0, 0.0), base_dir=table.path.parent, backend=backend)
+    add_asset(world, table.data, TABLE_ASSET, (0.0, 0.0, 0.0), base_dir=table.path.parent)
     texture = asset(scene.table_texture)
     apply_table_texture(world, texture.data, geoms=(f"{TABLE_ASSET}/top",), base_dir=texture.path.parent)
     robot_handles = add_robot(world, robot.data)
@@ -61,5 +60,5 @@ def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstan
     for obj in scene.objects:
         spec = asset(obj.asset)
         objects[obj.name] = add_asset(world, spec.data, obj.name, obj.pos, yaw_quat(obj.yaw_deg), obj.scale,
-                                      obj.rgba, base_dir=spec.path.parent, backend=backend)
+                                      obj.rgba, base_dir=spec.path.parent)
     return EmittedScene(world, robot_handles, objects)

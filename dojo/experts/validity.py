@@ -14,7 +14,6 @@ Plans are cached under `$DOJO_PLAN_CACHE/validity` (default ~/.cache/robodojo/pl
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import multiprocessing
 import time
 from collections.abc import Sequence
@@ -74,12 +73,11 @@ def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Pa
 
 
 def run_policy(model: Any, paths: Sequence[Path], num_envs: int = 8, threads: int | None = None,
-               horizon: int | None = None) -> list[Outcome]:
-    """Run `model` (an XPolicyLab Model) on every plan, `num_envs` at a time; `horizon` overrides the plans'."""
-    plans = {}
-    for path in paths:
-        plan = Plan.load(path)
-        plans[path] = dataclasses.replace(plan, horizon=horizon) if horizon else plan
+               max_steps: int | None = None) -> list[Outcome]:
+    """Run `model` (an XPolicyLab Model) on every plan, `num_envs` at a time. `max_steps` cuts every episode
+    short after that many steps, as a failure unless it succeeded first (a quick check that a policy does not
+    succeed early); the plans are run as compiled, so an outcome always names the plan that produced it."""
+    plans = {path: Plan.load(path) for path in paths}
     meta = model.metadata
     queue = list(paths)
     outcomes: list[Outcome] = []
@@ -106,7 +104,7 @@ def run_policy(model: Any, paths: Sequence[Path], num_envs: int = 8, threads: in
             ended = []
             for k, i in enumerate(ids):
                 obs[i] = result.obs[k]
-                if result.done[k]:
+                if result.done[k] or (max_steps is not None and result.steps[k] >= max_steps):
                     plan = plans[slots[i]]
                     outcomes.append(Outcome(plan.task, plan.setting, plan.seed, bool(result.success[k]),
                                             float(result.score[k]), int(result.steps[k])))

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 def plans():
     library = SpecLibrary.load([PACK])
     task = library.get("task", "stack_test")
-    return [compile_plan(library, task, "standard", seed, backend="mjx") for seed in range(2)]
+    return [compile_plan(library, task, "standard", seed) for seed in range(2)]
 
 
 def test_backend_matches_cpu_and_refills_without_recompiling(plans):

@@ -22,7 +22,6 @@ import yaml
 import dojo.assets
 import dojo.specs
 from dojo.compiler.asset_emit import (
-    BackendUnsupported,
     add_asset,
     apply_background,
     apply_lighting,
@@ -261,11 +260,6 @@ def test_add_asset_rejects_misuse(library: dict[str, Item]) -> None:
         add_asset(spec, library["wood_light"].asset, "tex", (0, 0, 0), base_dir=LIBRARY)
     with pytest.raises(ValueError, match="'/'"):
         add_asset(spec, library["mug"].asset, "a/b", (0, 0, 0), base_dir=library["mug"].base_dir)
-    with pytest.raises(ValueError, match="backend"):
-        add_asset(spec, library["mug"].asset, "m", (0, 0, 0), base_dir=library["mug"].base_dir, backend="isaac")
-    with pytest.raises(BackendUnsupported, match="flex"):
-        add_asset(spec, library["towel"].asset, "towel", (0, 0, TABLE_TOP_Z), base_dir=library["towel"].base_dir,
-                  backend="mjx")
 
 
 def test_asset_bounds_match_the_compiled_geometry(library: dict[str, Item]) -> None:
@@ -403,7 +397,7 @@ def test_mjx_accepts_rigid_and_articulated_assets(library: dict[str, Item]) -> N
 
     sample = [it for it in _physical(library) if it.asset["class"] != "cloth"][::4]
     placed = pack(sample)[0]
-    spec, _ = table_scene(library["table"], placed, backend="mjx")
+    spec, _ = table_scene(library["table"], placed)
     model = spec.compile()
     mx = mjx.put_model(model)  # raises NotImplementedError for collision pairs MJX lacks
     assert mx.ngeom == model.ngeom and len(placed) >= 10

@@ -22,7 +22,7 @@ from dojo.experts.validity import (
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "insert_tubes", "push_t",
          "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls", "swap_blocks"]
 CI_SEEDS = 3
-ZERO_HORIZON = 40
+ZERO_STEPS = 40
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -34,7 +34,7 @@ def test_expert_solves_the_first_seeds(library, plan_cache, task):
 
 def test_zero_policy_never_succeeds(library, plan_cache):
     files = plan_files(library, TASKS, 1, plan_cache, jobs=2)
-    outcomes = run_policy(policies()["zero"], [f for t in TASKS for f in files[t]], horizon=ZERO_HORIZON)
+    outcomes = run_policy(policies()["zero"], [f for t in TASKS for f in files[t]], max_steps=ZERO_STEPS)
     assert sorted(o.task for o in outcomes) == TASKS
     assert not any(o.success for o in outcomes), outcomes
     assert all(o.score == 0.0 for o in outcomes), outcomes

@@ -6,6 +6,7 @@
 - `backend`: `MjxBackend`, the `Backend` interface with actions, predicates and proprioception on the device;
 - `parity`: `parity_report` / `format_table`, agreement with the `mujoco` backend;
 - `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`);
+- `features`: which of a plan's `requires` this backend cannot run, and why;
 - `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode).
 """
 
@@ -14,7 +15,8 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from dojo.backends.registry import BackendOptions
@@ -49,3 +51,10 @@ def make(options: BackendOptions) -> MjxBackend:
                          height=options.height, depth=options.depth)
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
+
+
+def unsupported(features: Sequence[str], settings: Mapping[str, Any]) -> dict[str, str]:
+    """The registry's question (`dojo.backends.registry.unsupported_features`), answered by `features`."""
+    from dojo.backends.mjx.features import unsupported as answer
+
+    return answer(features, settings)

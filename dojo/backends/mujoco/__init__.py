@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from dojo.backends.registry import BackendOptions
@@ -17,3 +18,8 @@ def make(options: BackendOptions) -> MujocoBackend:
                          width=options.width, height=options.height, depth=options.depth,
                          privileged=options.privileged,
                          plan_paths=options.plan_paths if options.privileged else None)
+
+
+def unsupported(features: Sequence[str], settings: Mapping[str, Any]) -> dict[str, str]:
+    """Nothing: the CPU reference runs every feature MuJoCo has, scripted actors and events included."""
+    return {}

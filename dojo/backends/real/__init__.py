@@ -9,6 +9,7 @@ imports piper-sdk when it connects); the rest needs only the base install.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -29,3 +30,15 @@ def make(options: Any) -> RealBackend:
     return RealBackend(driver=str(settings.get("driver", "emulator")), can=settings.get("can"),
                        cameras=options.cameras, width=options.width, height=options.height, depth=options.depth,
                        emulator=settings.get("emulator"))
+
+
+SIMULATED_ONLY = {
+    "actors": "a robot's world has no scripted actors: evaluate this task in simulation",
+    "events": "a robot's world has no scripted events: evaluate this task in simulation",
+}
+
+
+def unsupported(features: Sequence[str], settings: Mapping[str, Any]) -> dict[str, str]:
+    """What only a simulator can do: act by script. A robot's physics is the world's own, so contacts,
+    constraints and deformable objects are not a question."""
+    return {f: SIMULATED_ONLY[f] for f in features if f in SIMULATED_ONLY}
