@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"dojo": "dojo", "xpolicylab": "xpolicylab"}
 # The concerns of the code base, one package each (dojo/<name>/); a new top-level folder is a design decision.
 CONCERNS = {"backends", "bench", "cli", "compiler", "datagen", "evaluation", "experts", "language", "launch",
-            "report", "strict"}
+            "realeval", "report", "strict"}
 ENGINES = ("MujocoBackend", "MjxBackend", "RealBackend")
 
 

@@ -101,6 +101,11 @@ def _doctor(argv: list[str]) -> int:
     return doctor_main(argv)
 
 
+def _console(argv: list[str]) -> int:
+    from dojo.realeval.cli import console_main
+    return console_main(argv)
+
+
 def _list(argv: list[str]) -> int:
     from dojo.cli.list_cmd import list_main
     return list_main(argv)
@@ -131,6 +136,8 @@ COMMANDS: dict[str, Command] = {
                       "dojo report outputs/robodojo_sim_mini/zero outputs/robodojo_sim_mini/random", _report),
     "policy": Command("Serve, check or create a policy (XPolicyLab).",
                       "dojo policy serve policy=zero port=19000", _policy),
+    "console": Command("Serve the RealEval operator console: a real suite's trials on a robot (or its emulator).",
+                       "dojo console suite=robodojo_real_piper policy.url=ws://127.0.0.1:19000", _console),
     "doctor": Command("Print versions, devices and where results and caches are (paste it into bug reports).",
                       "dojo doctor", _doctor),
 }

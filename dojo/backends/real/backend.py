@@ -8,7 +8,8 @@ driver reports it, end-effector poses by forward kinematics of the reported join
 
 What the robot cannot know is left to the RealEval protocol: success and score are given by the raters
 afterwards (a step reports neither; stage times stay unset), so an episode ends at its horizon, or on a
-non-finite action as in simulation. `clipped` counts the step's clips and refusals (safety layer and IK goal);
+non-finite action as in simulation, or by the operator: an e-stop (`END_ESTOP`) or a stop (`request_stop()`,
+`END_OPERATOR_STOP`) ends it at the next step, which commands nothing. `clipped` counts the step's clips and refusals (safety layer and IK goal);
 the safety layer's own counters (watchdog holds included) are `backend.safety.counters`, reported with every
 step (`StepResult.counters`) so that each trial's row in the results store keeps them.
 
@@ -40,6 +41,8 @@ from dojo.backends.real.safety import SafetyLayer
 from dojo.backends.real.workspace import RobotGeometry
 
 DRIVERS = ("emulator", "piper")
+END_ESTOP = "estop"
+END_OPERATOR_STOP = "operator_stop"
 SETTLE_TIMEOUT_S = 60.0
 """Longest a reset waits for the arms to reach the episode's start pose."""
 AT_POSE = 0.01
@@ -76,6 +79,7 @@ class RealBackend(Backend):
         self._step = 0
         self._done, self._end_reason, self._clipped_total = False, None, 0
         self._next_step = 0.0
+        self._stop_requested = False
 
     @property
     def num_envs(self) -> int:
@@ -142,6 +146,7 @@ class RealBackend(Backend):
             self._driver.home(self.safety.config.return_speed)
         self._wait_at(start)
         self._step, self._done, self._end_reason, self._clipped_total = 0, False, None, 0
+        self._stop_requested = False
         self._next_step = time.monotonic()
 
     def _wait_at(self, joint_pos: np.ndarray) -> None:
@@ -160,6 +165,9 @@ class RealBackend(Backend):
             return self._result(ids, [], 0)
         if self._done:
             raise EpisodeDone(f"the episode ended ({self._end_reason}); reset before stepping")
+        if self.safety.halted or self._stop_requested:  # the operator ended the trial: command nothing more
+            self._done, self._end_reason = True, END_ESTOP if self.safety.halted else END_OPERATOR_STOP
+            return self._result(ids, [self._observation(observe is None or 0 in set(observe))], 0)
         joints = self._kinematics.index.limits.joints_per_arm
         dim = A.action_dim(mode, joints)
         actions = np.asarray(actions, dtype=np.float64)
@@ -178,6 +186,11 @@ class RealBackend(Backend):
         clips = len(verdict.clipped) + (verdict.refused is not None) + ik_clips
         self._clipped_total += clips
         return self._result(ids, [self._observation(observe is None or 0 in set(observe))], clips)
+
+    def request_stop(self) -> None:
+        """End the running trial at its next step (the operator's Stop; from any thread). The arms keep their
+        last target, and the watchdog holds them."""
+        self._stop_requested = True
 
     def _targets(self, actions: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray, int]:
         """Joint targets [2, J], grippers [2] and the IK goal's clipped count (0 for joint modes)."""

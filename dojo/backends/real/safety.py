@@ -72,6 +72,11 @@ class SafetyLayer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
+    @property
+    def halted(self) -> bool:
+        """An e-stop is in force (holding, returning, or stopped at the reset pose) until `release()`."""
+        return self.state in (ESTOP, RETURNING, STOPPED)
+
     # ---- trials ----
 
     def new_trial(self) -> None:
@@ -94,7 +99,7 @@ class SafetyLayer:
         q = np.asarray(joint_pos, dtype=float).reshape(self.joint_lo.shape)
         grip = np.asarray(gripper, dtype=float).reshape(2)
         with self._lock:
-            if self.state in (ESTOP, RETURNING, STOPPED):
+            if self.halted:
                 return self._refuse("refused_estop")
             if not (np.isfinite(q).all() and np.isfinite(grip).all()):
                 return self._refuse("refused_nonfinite")

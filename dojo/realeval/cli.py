@@ -1,0 +1,119 @@
+"""`dojo console`: serve the RealEval operator console for a real suite on one robot (the emulator by default).
+
+Examples:
+    dojo console suite=robodojo_real_piper policy.url=ws://HOST:PORT [token=...] [port=8787]
+    dojo console suite=robodojo_real_piper policy=zero backend.driver=piper backend.can=[can_left,can_right]
+
+Arguments are `key=value` (dotted keys, lists in brackets), as for `dojo run`. The trials go into the results
+store `<out>/results.sqlite` (default out: `outputs/<suite>/console/<policy>`), their videos beside it, the
+reference layouts under `layouts` (default `<out>/layouts`). The token guards every page; it is `token=`, else
+`$DOJO_CONSOLE_TOKEN`, else a new one printed once. The console listens on 127.0.0.1 unless `host=` says
+otherwise: it commands a robot, so put it on a network only behind your lab's own access control.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import sys
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from dojo.evaluation.evaluate import QueuedEpisode, run_id_for
+
+DEFAULTS: dict[str, Any] = {
+    "suite": None, "packs": [], "tasks": None, "episodes": None, "seeds": None, "plans": None,
+    "policy": {"name": "zero"}, "backend": {"name": "real", "driver": "emulator", "can": None, "emulator": {}},
+    "width": None, "height": None, "host": "127.0.0.1", "port": 8787, "token": None, "out": None, "layouts": None,
+}
+
+
+def console_config(argv: list[str]) -> Any:
+    """The console's configuration: DEFAULTS with the `key=value` arguments over them."""
+    if any(a in ("-h", "--help") for a in argv):
+        print(__doc__)
+        raise SystemExit(0)
+    bad = [a for a in argv if "=" not in a]
+    if bad:
+        raise ValueError(f"dojo console takes key=value arguments, got {bad[0]!r}")
+    argv = [f"policy.name={a.split('=', 1)[1]}" if a.startswith("policy=") else a for a in argv]  # as dojo run
+    cfg = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_dotlist(argv))
+    if not cfg.suite:
+        raise ValueError("dojo console needs suite=<a real suite>, e.g. suite=robodojo_real_piper")
+    return cfg
+
+
+def build_session(cfg: Any) -> Any:
+    """The console session `cfg` describes: the suite compiled, the policy opened, the robot configured."""
+    from dojo.cli.run_cmd import DEFAULT_PLAN_CACHE
+    from dojo.compiler.horizon import horizons_file, load_demo_lengths
+    from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.suite_compile import compile_suite
+    from dojo.evaluation.camera_budget import image_size
+    from dojo.evaluation.policy_link import open_policy
+    from dojo.evaluation.results_store import ResultsStore
+    from dojo.realeval.session import ConsoleSession
+
+    library = SpecLibrary.load([Path(p) for p in cfg.packs])
+    suite = library.get("suite", str(cfg.suite))
+    seeds = list(cfg.seeds) if cfg.seeds is not None else None
+    tasks = list(cfg.tasks) if cfg.tasks is not None else None
+    plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
+    stats = compile_suite(library, suite, plan_dir, seeds=seeds, episodes=cfg.episodes, tasks=tasks,
+                          demo_lengths=load_demo_lengths(horizons_file("auto")))
+    queue = [QueuedEpisode(plan_path=p.plan_path, plan_hash=p.plan_hash, task=p.episode.task,
+                           dimension=p.episode.dimension, setting=p.episode.setting, eval_seed=p.episode.eval_seed,
+                           episode=p.episode.index, scene_seed=p.episode.scene_seed) for p in stats.episodes]
+    if not queue:
+        raise ValueError(f"suite {suite.id} has no trials to run")
+    embodiment = library.get("task", queue[0].task).data["embodiment"]
+    policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
+    policy = open_policy(policy_cfg, embodiment)  # type: ignore[arg-type]
+    try:
+        meta = policy.metadata
+        from dojo.compiler.plan import Plan
+
+        robot_cameras = Plan.load(queue[0].plan_path).cameras
+        cameras = tuple(meta.cameras) + tuple(c for c in robot_cameras if c not in meta.cameras)
+        width, height, _ = image_size(meta, cfg.width, cfg.height)
+        backend = OmegaConf.to_container(cfg.backend, resolve=True)
+        identity = {"suite": suite.id, "policy": meta.name, "policy_config": policy_cfg, "backend": "real",
+                    "driver": backend["driver"], "seeds": seeds, "episodes": cfg.episodes, "tasks": tasks,  # type: ignore[index]
+                    "console": True}
+        out = Path(cfg.out) if cfg.out else Path(os.environ.get("DOJO_OUTPUTS", "outputs")) / suite.id / "console" / meta.name
+        layouts = Path(cfg.layouts) if cfg.layouts else out / "layouts"
+        run_id = run_id_for(identity)
+        with ResultsStore(out / "results.sqlite") as store:  # the same session again resumes its run
+            store.ensure_run(run_id, identity)
+        return ConsoleSession(queue, policy, run_id, out / "results.sqlite", out, backend,  # type: ignore[arg-type]
+                              cameras, (width, height), layouts)
+    except BaseException:
+        policy.close()
+        raise
+
+
+def console_main(argv: list[str]) -> int:
+    """`dojo console key=value ...`: build the session and serve it until interrupted."""
+    import uvicorn
+
+    from dojo.realeval.app import create_app
+
+    cfg = console_config(argv)
+    token = cfg.token or os.environ.get("DOJO_CONSOLE_TOKEN")
+    if not token:
+        token = secrets.token_urlsafe(18)
+        print(f"console token (give it to the operators): {token}", flush=True)
+    session = build_session(cfg)
+    try:
+        print(f"RealEval console: http://{cfg.host}:{cfg.port}/  ({len(session.trials)} trials; results "
+              f"{session.store_path})", flush=True)
+        uvicorn.run(create_app(session, str(token)), host=str(cfg.host), port=int(cfg.port), log_level="warning")
+    finally:
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(console_main(sys.argv[1:]))
