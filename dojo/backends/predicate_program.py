@@ -79,6 +79,7 @@ class _Compiler:
         self.press_rest: list[float] = []
         self.press_far: list[float] = []
         self.n_order = 0
+        self.start_poses = False
 
     # ---- names ----
 
@@ -228,6 +229,12 @@ class _Compiler:
         self.press_slots[obj] = len(self.presses) - 1
         return self.press_slots[obj]
 
+    def start_pose(self, ref: str) -> int:
+        """Frame slot of an objref whose pose at the start of the episode a predicate compares with: the program's
+        params then carry every frame's start rotation, `init_mat` (its start centre is `init_center`)."""
+        self.start_poses = True
+        return self.frame(ref)
+
     def group_members(self, group: str) -> list[str]:
         """The objects of a group, in a fixed order (quantifiers expand over them)."""
         return sorted(n for n, o in self.plan.objects.items() if o.get("group") == group)
@@ -289,11 +296,13 @@ def resolve_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledP
     terms = tuple(_located(comp, pred, path) for pred, path in zip(term_preds, paths))
     success = AllOf(terms) if conjuncts else terms[0]  # the node `all` itself compiles to
     stages = tuple(_located(comp, s["when"], ("stages", i, "when")) for i, s in enumerate(program.get("stages", [])))
+    triggers = tuple(_located(comp, e["when"], ("events", i, "when"))
+                     for i, e in enumerate(program.get("events", [])) if "when" in e)
     layout = ProgramLayout(
         success=success, stages=stages, stage_names=tuple(s["name"] for s in program.get("stages", [])),
         weights=tuple(float(s.get("weight", 1.0)) for s in program.get("stages", [])),
         sequential=program.get("stage_order", "any") == "sequential", presses=tuple(comp.presses),
-        n_order=comp.n_order, terms=terms, term_names=tuple(words.render(p) for p in term_preds),
+        n_order=comp.n_order, terms=terms, term_names=tuple(words.render(p) for p in term_preds), triggers=triggers,
     )
     index = StateIndex(tuple(comp.frame_kind), tuple(comp.frame_id), tuple(comp.qpos_adr), comp.geom_atom(),
                        len(comp.atom_bodies))
@@ -305,6 +314,8 @@ def resolve_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledP
     init_center = P.box_center(np, init["pos"][0], init["mat"][0], c) if f else np.zeros((0, 3))
     params = {"frame_c": c, "frame_h": h, "const_pos": const, "init_center": init_center.reshape(f, 3),
               "press_rest": np.asarray(comp.press_rest, float), "press_far": np.asarray(comp.press_far, float)}
+    if comp.start_poses:  # only then: plans of a task share one set of params keys, tasks without it keep theirs
+        params["init_mat"] = init["mat"][0].reshape(f, 3, 3)
     return CompiledProgram(layout, index, params)
 
 
@@ -407,7 +418,8 @@ def program_step(xp: Any, layout: ProgramLayout, state: dict[str, Array], params
         score = 100.0 * success.astype(xp.float32)
     memory = {"press_count": count, "press_down": down, "first": first, "stage_step": stage_step}
     terms = _columns(xp, [ev.eval(t) for t in layout.terms], xp.zeros((ev.n, 0), dtype=bool))
-    return memory, ProgramOutput(success=success, score=score, stage_step=stage_step, terms=terms)
+    triggers = _columns(xp, [ev.eval(t) for t in layout.triggers], xp.zeros((ev.n, 0), dtype=bool))
+    return memory, ProgramOutput(success=success, score=score, stage_step=stage_step, terms=terms, triggers=triggers)
 
 
 def stack_params(params: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

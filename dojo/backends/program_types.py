@@ -36,6 +36,8 @@ class ProgramLayout:
     terms: tuple[Node, ...] = ()
     """The success predicate's named conditions: the children of a top-level `all`, else the predicate itself."""
     term_names: tuple[str, ...] = ()
+    triggers: tuple[Node, ...] = ()
+    """The `when` predicates of the task's events (`dojo.backends.world_events`), in event order."""
 
 
 @dataclass
@@ -48,12 +50,14 @@ class CompiledProgram:
 class ProgramOutput(NamedTuple):
     """One evaluation, batched over N: success bool[N], score float[N] (0-100), stage_step int[N, S]
     (first control step each stage was reached, -1 = not yet), terms bool[N, T] (each success term now, so a
-    failed episode says which condition failed). A NamedTuple, hence a JAX pytree."""
+    failed episode says which condition failed), triggers bool[N, E] (each event's `when` now; the backend fires
+    an event the first step it holds). A NamedTuple, hence a JAX pytree."""
 
     success: Array
     score: Array
     stage_step: Array
     terms: Array
+    triggers: Array = None
 
 
 class ProgramError(ValueError):

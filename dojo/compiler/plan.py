@@ -24,6 +24,8 @@ import numpy as np
 
 from dojo.backends.predicate_program import ProgramError, resolve_program
 from dojo.backends.program_json import program_to_json
+from dojo.backends.world_events import EventError, compile_events
+from dojo.language.facts import FactError, resolve_facts
 
 from dojo.compiler.horizon import task_horizon
 from dojo.compiler.robot_emit import apply_home
@@ -134,6 +136,8 @@ def input_specs(library: SpecLibrary, task: Spec, setting: str) -> list[Spec]:
         specs += library.resolve(task, "asset", entry["asset"])
         if cfg["instances"] and "variants" in entry:
             specs += library.resolve(task, "asset", entry["variants"])
+        for ref in entry.get("draw_from", []):
+            specs += library.resolve(task, "asset", ref)
     for key in STANDARD_LOOK:
         if setting == "standard" and key not in task.data.get("settings", {}).get("standard", {}):
             specs += library.resolve(task, "asset", STANDARD_LOOK[key])
@@ -182,8 +186,12 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
                              "fixed": obj.fixed, "half_extents": obj.half_extents, "attributes": obj.attributes}
     regions = {name: {"center": r["center"], "size": r["size"], "on": r.get("on")}
                for name, r in task.data["scene"].get("regions", {}).items()}
-    program = {"success": task.data["success"], "stages": task.data.get("stages", []),
-               "stage_order": task.data.get("stage_order", "any")}
+    try:  # facts (the number on a drawn card) become this episode's values: backends see plain predicates
+        program = resolve_facts({"success": task.data["success"], "stages": task.data.get("stages", []),
+                                 "stage_order": task.data.get("stage_order", "any"),
+                                 "events": task.data.get("events", [])}, objects)
+    except FactError as exc:
+        raise SpecError([task.problem(exc.path, str(exc))]) from None
     plan = Plan(
         hash=digest, task=task.id, dimension=task.data["dimension"], setting=setting, seed=seed,
         embodiment=robot.id, instruction=scene.instruction, horizon=task_horizon(task.data, demo_lengths),
@@ -195,8 +203,11 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
     )
     try:
         plan.compiled_program = program_to_json(resolve_program(plan))
+        compile_events(plan, plan.model())
     except ProgramError as exc:
         raise SpecError([task.problem(exc.path or ("success",), str(exc))]) from None
+    except EventError as exc:
+        raise SpecError([task.problem(exc.path, str(exc))]) from None
     return plan
 
 

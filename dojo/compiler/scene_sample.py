@@ -154,7 +154,10 @@ class _Sampler:
         return out
 
     def make_object(self, entry: dict, name: str, fixed: bool) -> PlacedObject:
-        if self.cfg["instances"] and "variants" in entry:
+        if "draw_from" in entry:  # drawn in every setting: the episode's hidden fact (which number card)
+            asset = self.choose([self.library.resolve(self.task, "asset", ref)[0] for ref in entry["draw_from"]],
+                                vary=True)
+        elif self.cfg["instances"] and "variants" in entry:
             asset = self.choose(self.library.resolve(self.task, "asset", entry["variants"]), vary=True)
         else:
             asset = self.choose(self.library.resolve(self.task, "asset", entry["asset"]), vary=self.cfg["instances"])
@@ -183,7 +186,7 @@ class _Sampler:
         b_lo, b_hi = asset_bounds(asset.data, asset.path.parent, scale) if asset.data["class"] in (
             "rigid", "articulated", "cloth") else (np.zeros(3), np.zeros(3))
         half = [float(max(-b_lo[i], b_hi[i])) for i in range(2)] + [float(b_hi[2] - b_lo[2]) / 2]
-        attributes = dict(entry.get("attributes", {}))
+        attributes = {**asset.data.get("attributes", {}), **entry.get("attributes", {})}
         attributes.setdefault("name", asset.data["names"][0])
         if color:
             attributes.setdefault("color", color)

@@ -32,6 +32,8 @@ def _object_line(entry: dict[str, Any]) -> str:
     asset = entry["asset"]
     asset_text = asset if isinstance(asset, str) else "any asset with " + ", ".join(f"{k} {v}" for k, v in
                                                                                     asset.items())
+    if "draw_from" in entry:
+        asset_text = "one of " + ", ".join(str(a) for a in entry["draw_from"]) + " drawn per episode"
     where = f"in region `{entry['region']}`" if "region" in entry else f"at {entry.get('pos')}"
     extras = [f"x{entry['count']}" if entry.get("count", 1) > 1 else "",
               f"group `{entry['group']}`" if "group" in entry else "",

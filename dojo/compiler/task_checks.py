@@ -66,6 +66,8 @@ def task_problems(task: dict) -> list[Problem]:
     placeable = objects | regions | BUILTIN_NAMES
     predicates: list[tuple[JsonPath, dict]] = [(("success",), task["success"])]
     predicates += [(("stages", i, "when"), s["when"]) for i, s in enumerate(task.get("stages", []))]
+    predicates += [(("events", i, "when"), e["when"]) for i, e in enumerate(task.get("events", [])) if "when" in e]
+    problems += _event_problems(task.get("events", []), objects)
     for path, pred in predicates:
         (op, arg), = pred.items()
         for ref_path, name, role, quantified in predicate_words.references(op, arg, path, False):
@@ -108,6 +110,22 @@ def task_problems(task: dict) -> list[Problem]:
         if "hidden_after" in entry and entry["hidden_after"] not in stage_names:
             problems.append((("scene", "objects", i, "hidden_after"), f"unknown stage '{entry['hidden_after']}'"
                                                                       f"{did_you_mean(entry['hidden_after'], stage_names)}", False))
+    return problems
+
+
+def _event_problems(events: list[dict], objects: set[str]) -> list[Problem]:
+    """Every name an event acts on that is not an object of the scene (joints are checked when a plan is built)."""
+    problems: list[Problem] = []
+    for i, event in enumerate(events):
+        for action, value in event.items():
+            if action in ("at_step", "when"):
+                continue
+            names = value if isinstance(value, list) else [value]
+            for k, name in enumerate(names):
+                base = str(name).split("/", 1)[0]
+                if base not in objects:
+                    path = ("events", i, action) + ((k,) if isinstance(value, list) else ())
+                    problems.append((path, f"unknown object '{base}'{did_you_mean(base, objects)}", False))
     return problems
 
 

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 
 from dojo.language import skills as skill_words
+from dojo.language.facts import resolve_facts
 
 from dojo.experts.motion import (
     ARM_INDEX,
@@ -91,9 +92,17 @@ class SkillContext:
         self.grip = self.planner.index.gripper(data).copy()
         home = plan.robot["home_qpos"]
         self.home_q = np.asarray([[home[j] for j in plan.robot["arm_joints"][a * 6:(a + 1) * 6]] for a in range(2)])
+        self._start_scene: Scene | None = None
         self.held: dict[int, str] = {}
         self.pitch = [0.0, 0.0]
         self.failures: list[str] = []
+
+    @property
+    def start_scene(self) -> Scene:
+        """The scene as it was at the start of the episode (the plan's initial state)."""
+        if self._start_scene is None:
+            self._start_scene = Scene(self.plan, self.model, self.plan.initial_data(self.model))
+        return self._start_scene
 
     # ---- segments ----
 
@@ -710,8 +719,9 @@ def _slot_yaw(ctx: SkillContext, obj: str, target: str) -> float:
     return _wrap(2.0 * angle) / 2.0  # an axis, not a direction: within a quarter turn
 
 
-def press(ctx: SkillContext, arm: str, obj: str) -> SkillGen:
-    """Press a button's interaction point with the closed fingertips, then come back up."""
+def press(ctx: SkillContext, arm: str, obj: str, times: int = 1) -> SkillGen:
+    """Press a button's interaction point with the closed fingertips, then come back up; `times` times (the cap
+    springs back up between presses, far enough to count each one)."""
     annotation = "pressed" if ctx.scene.has_site(obj, "pressed") else "top"
     point = ctx.scene.site(obj, annotation).center
     a = ctx.choose_arm(arm, point)
@@ -720,8 +730,9 @@ def press(ctx: SkillContext, arm: str, obj: str) -> SkillGen:
     tcp = point + [0.0, 0.0, FINGERTIP]
     pose = ctx.reachable(a, tcp, ctx.natural_axis(a, tcp))
     yield ctx.line(a, pose.shifted([0.0, 0.0, APPROACH]), FAST)
-    yield ctx.line(a, pose.shifted([0.0, 0.0, -0.011]), SLOW / 2, settle=6)
-    yield ctx.line(a, pose.shifted([0.0, 0.0, APPROACH]), FAST)
+    for _ in range(times):
+        yield ctx.line(a, pose.shifted([0.0, 0.0, -0.011]), SLOW / 2, settle=6)
+        yield ctx.line(a, pose.shifted([0.0, 0.0, APPROACH]), FAST)
 
 
 def push_up(ctx: SkillContext, arm: str, obj: str, height: float) -> SkillGen:
@@ -745,11 +756,14 @@ def push_up(ctx: SkillContext, arm: str, obj: str, height: float) -> SkillGen:
     yield ctx.line(a, goal, SLOW, settle=10)
 
 
-def push(ctx: SkillContext, arm: str, obj: str, target: str, tries: int = 3) -> SkillGen:
+def push(ctx: SkillContext, arm: str, obj: str, target: str, tries: int = 3, at_start: bool = False) -> SkillGen:
     """Bring `obj` onto a target frame with its heading (push_T's outcome): grasp it, carry it over, turn it
     to the target's yaw on the way, set it down; then measure and correct, up to `tries` times in all, until
-    it lies within PUSH_POS / PUSH_YAW of the target (the first long carry is the least precise)."""
-    goal = ctx.scene.site(*target.split("/", 1)) if "/" in target else ctx.scene.box(target)
+    it lies within PUSH_POS / PUSH_YAW of the target (the first long carry is the least precise). `at_start`:
+    the target frame as it was at the start of the episode (swap_T: where the other T lay), which the expert
+    saw then as the robot did."""
+    scene = ctx.start_scene if at_start else ctx.scene
+    goal = scene.site(*target.split("/", 1)) if "/" in target else scene.box(target)
     for _ in range(tries):
         box = ctx.scene.box(obj)
         ref = ctx.scene.site(obj, "center").center if ctx.scene.has_site(obj, "center") else box.center
@@ -757,6 +771,13 @@ def push(ctx: SkillContext, arm: str, obj: str, target: str, tries: int = 3) -> 
         if np.linalg.norm(ref[:2] - goal.center[:2]) < PUSH_POS and abs(turn) < math.radians(PUSH_YAW):
             return
         a = ctx.choose_arm(arm, box.center, goal.center)
+        if arm == "auto" and not (_within_reach(ctx, a, box.center) and _within_reach(ctx, a, goal.center)):
+            # no arm reaches both: the one nearer the target takes it, the other one handing it over first
+            a = int(np.argmin([np.linalg.norm(goal.center[:2] - ctx.planner.base_pos[k, :2]) for k in range(2)]))
+            bases = ctx.planner.base_pos[:, :2]
+            if not _within_reach(ctx, a, box.center) and (
+                    np.linalg.norm(box.center[:2] - bases[1 - a]) < np.linalg.norm(box.center[:2] - bases[a])):
+                yield from relay(ctx, 1 - a, obj, a)
         yield from free_other_arm(ctx, a)
         yield from grasp(ctx, a, obj)
         box = ctx.scene.box(obj)
@@ -835,9 +856,10 @@ def _wrap(a: float) -> float:
 # ---- programs ----
 
 def expand(plan: Any, steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The expert's steps with `for_each` groups expanded (`_` replaced by each member, in name order)."""
+    """The expert's steps with `for_each` groups expanded (`_` replaced by each member, in name order) and facts
+    (`{attribute: [card, number]}`) replaced by this episode's values."""
     out = []
-    for step in steps:
+    for step in resolve_facts(steps, plan.objects):
         group = step.get("for_each")
         if not group:
             out.append(step)
@@ -875,7 +897,7 @@ def run_insert(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
 
 
 def run_press(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
-    return press(ctx, step.get("arm", "auto"), step.get("object"))
+    return press(ctx, step.get("arm", "auto"), step.get("object"), int(step.get("times", 1)))
 
 
 def run_push_up(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
@@ -883,7 +905,8 @@ def run_push_up(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
 
 
 def run_push(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
-    return push(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"))
+    return push(ctx, step.get("arm", "auto"), step.get("object"), step.get("target"),
+                at_start=step.get("target_at", "now") == "start")
 
 
 def run_handover(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:

@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from dojo.language import facts
 from dojo.language.registry import Registry
 
 Array = Any
@@ -111,6 +112,11 @@ def _walk(schema: dict, value: Any, path: tuple, quantified: bool) -> Iterator[t
         if isinstance(value, dict) and len(value) == 1:
             (child, child_arg), = value.items()
             yield from references(child, child_arg, path, quantified)
+    elif ref == facts.FACT:
+        yield from _walk(facts.SCHEMA, value, path, quantified)
+    elif "oneOf" in schema:
+        for alternative in schema["oneOf"]:
+            yield from _walk(alternative, value, path, quantified)
     elif ref == QUANTIFIER:
         if isinstance(value, dict):
             if isinstance(value.get("group"), str):
@@ -139,6 +145,8 @@ def render(pred: Any) -> str:
 
 
 def _render_arg(arg: Any) -> str:
+    if facts.is_fact(arg):
+        return ".".join(map(str, arg["attribute"]))
     if isinstance(arg, list):
         return ", ".join(render(a) for a in arg)
     if isinstance(arg, dict):

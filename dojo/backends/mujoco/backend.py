@@ -38,6 +38,7 @@ from dojo.backends.base import (
 )
 from dojo.backends.predicate_program import CompiledProgram, ProgramLayout, compile_program, init_memory, program_step
 from dojo.backends.predicate_state import mujoco_state
+from dojo.backends.world_events import EventState, WorldEvents, compile_events
 from dojo.backends.mujoco.kinematics import ArmKinematics, RobotIndex
 
 DIVERGED = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQACC)
@@ -55,6 +56,8 @@ class _Compiled:
     robot: RobotIndex
     params: dict[str, np.ndarray]
     """The program's params with a leading axis of 1, ready to concatenate over slots."""
+    events: WorldEvents | None = None
+    """The task's events (`dojo.backends.world_events`), run in `step`; None when it has none."""
 
 
 @dataclass
@@ -72,6 +75,7 @@ class _Slot:
     stage_step: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     terms: dict[str, bool] = field(default_factory=dict)
     clipped_total: int = 0
+    events: EventState | None = None
 
 
 class MujocoBackend(Backend):
@@ -149,6 +153,7 @@ class MujocoBackend(Backend):
         data.qpos[:] = plan.init_qpos
         data.qvel[:] = plan.init_qvel
         data.ctrl[:] = plan.init_ctrl
+        slot.events = slot.compiled.events.start(data) if slot.compiled.events else None
         mujoco.mj_forward(model, data)
         slot.memory = init_memory(np, slot.compiled.program.layout, 1)
         slot.step, slot.done, slot.end_reason, slot.success, slot.score, slot.clipped_total = 0, False, None, False, 0.0, 0
@@ -198,6 +203,8 @@ class MujocoBackend(Backend):
             if ee_goal is not None:
                 ctrl[k] = self._solve_ik(slot, ee_goal[0][k], ee_goal[1][k], ee_goal[2][k])
             slot.data.ctrl[slot.compiled.robot.actuators] = ctrl[k]
+            if slot.events is not None:
+                slot.compiled.events.hold(slot.events, slot.data)
             mujoco.mj_step(slot.compiled.model, slot.data, nstep=slot.plan.n_substeps)
 
         chunks = [range(t, len(slots), self.num_threads) for t in range(min(self.num_threads, len(slots)))]
@@ -267,6 +274,9 @@ class MujocoBackend(Backend):
                 slot.success, slot.score = bool(out.success[k]), float(out.score[k])
                 slot.stage_step = out.stage_step[k]
                 slot.terms = dict(zip(layout.term_names, map(bool, out.terms[k])))
+                if slot.events is not None and slot.compiled.events.fire(slot.events, slot.data, slot.step,
+                                                                         out.triggers[k]):
+                    mujoco.mj_forward(slot.compiled.model, slot.data)
                 if slot.success:
                     slot.done, slot.end_reason = True, END_SUCCESS
                 elif slot.step >= slot.plan.horizon:
@@ -330,4 +340,4 @@ def _build(plan: Any) -> _Compiled:
     model = plan.model()
     program = compile_program(plan, model)
     return _Compiled(model, program, RobotIndex.build(model, plan.robot),
-                     {k: v[None] for k, v in program.params.items()})
+                     {k: v[None] for k, v in program.params.items()}, compile_events(plan, model))
