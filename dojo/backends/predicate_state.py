@@ -4,7 +4,7 @@ A compiled program (see `predicate_program`) names a few *frames* (bodies, sites
 regions), a few joints and a few contact *atoms* (objects, the table, each arm). `StateIndex` holds where they
 are in one model; `gather_state` turns a batch of simulation arrays into the predicate state
 
-    {"pos": [N, F, 3], "mat": [N, F, 3, 3], "qpos": [N, J], "contact": bool [N, A, A]}
+    {"pos": [N, F, 3], "mat": [N, F, 3, 3], "qpos": [N, J], "qvel": [N, nv], "contact": bool [N, A, A]}
 
 with the same code for both backends. The MJX backend calls `batched_state(jnp, index, const_pos, data)` on an
 `mjx.Data` stacked over environments (all environments of a bucket share one model structure, hence one
@@ -53,12 +53,15 @@ class StateIndex:
 
 
 def gather_state(xp: Any, index: StateIndex, const_pos: Array, xpos: Array, xmat: Array, site_xpos: Array,
-                 site_xmat: Array, qpos: Array, geom1: Array, geom2: Array, dist: Array) -> dict[str, Array]:
+                 site_xmat: Array, qpos: Array, geom1: Array, geom2: Array, dist: Array,
+                 qvel: Array | None = None) -> dict[str, Array]:
     """The predicate state of N environments.
 
     Arrays are batched over N: `xpos [N, nbody, 3]`, `xmat [N, nbody, 3, 3]` or `[N, nbody, 9]`, likewise
     the sites, `qpos [N, nq]`, contacts `geom1`, `geom2`, `dist [N, C]`; `const_pos [N, F, 3]` comes from the
     program's params (`params["const_pos"]`). A fixed number of gathers whatever the number of frames.
+    `qvel [N, nv]` is kept whole (`struck` reads a joint's speed by its velocity address); without it the state
+    has no velocity columns.
     """
     ix = index.arrays
     n = qpos.shape[0]
@@ -73,17 +76,18 @@ def gather_state(xp: Any, index: StateIndex, const_pos: Array, xpos: Array, xmat
         "pos": pos,
         "mat": mat,
         "qpos": qpos[:, ix["qpos"]],
+        "qvel": qvel if qvel is not None else xp.zeros((n, 0), dtype=qpos.dtype),
         "contact": contact_matrix(xp, xp.asarray(ix["geom_atom"]), geom1, geom2, dist, index.n_atoms),
     }
 
 
 def batched_state(xp: Any, index: StateIndex, const_pos: Array, data: Any) -> dict[str, Array]:
     """The predicate state of a batch held in one Data-like object: `data.xpos`, `.xmat`, `.site_xpos`,
-    `.site_xmat`, `.qpos`, `.contact.geom [N, C, 2]` and `.contact.dist [N, C]`, batched over N, which is what
-    an `mjx.Data` stacked over environments holds (the MJX backend's call, under jit)."""
+    `.site_xmat`, `.qpos`, `.qvel`, `.contact.geom [N, C, 2]` and `.contact.dist [N, C]`, batched over N, which
+    is what an `mjx.Data` stacked over environments holds (the MJX backend's call, under jit)."""
     contact = data.contact
     return gather_state(xp, index, const_pos, data.xpos, data.xmat, data.site_xpos, data.site_xmat, data.qpos,
-                        contact.geom[..., 0], contact.geom[..., 1], contact.dist)
+                        contact.geom[..., 0], contact.geom[..., 1], contact.dist, data.qvel)
 
 
 def mujoco_state(index: StateIndex, const_pos: np.ndarray, data: mujoco.MjData) -> dict[str, np.ndarray]:
@@ -93,4 +97,5 @@ def mujoco_state(index: StateIndex, const_pos: np.ndarray, data: mujoco.MjData) 
     return gather_state(
         np, index, const_pos[None], data.xpos[None], data.xmat[None], data.site_xpos[None], data.site_xmat[None],
         data.qpos[None], contact.geom1[None, :ncon], contact.geom2[None, :ncon], contact.dist[None, :ncon],
+        data.qvel[None],
     )

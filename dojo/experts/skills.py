@@ -96,6 +96,8 @@ class SkillContext:
         self.held: dict[int, str] = {}
         self.pitch = [0.0, 0.0]
         self.failures: list[str] = []
+        self.memo: dict[Any, Any] = {}
+        """What a skill measured for later steps of the same episode (the attitude a strike holds its tool in)."""
 
     @property
     def start_scene(self) -> Scene:

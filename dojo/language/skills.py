@@ -21,6 +21,7 @@ from dojo.language.registry import Registry
 Runner = Callable[[Any, dict[str, Any]], Iterator[Any]]
 _EXPERT = "dojo.experts.skills"
 _ARTICULATED = "dojo.experts.articulated"
+_PRECISION = "dojo.experts.precision_skills"
 
 
 @dataclass(frozen=True)
@@ -89,5 +90,6 @@ for _name, _description, _run in (
     ("release", "let go and back out along the approach axis", f"{_EXPERT}:run_release"),
     ("home", "return both arms to their home pose", f"{_EXPERT}:run_home"),
     ("wait", "hold still for `steps` control steps", f"{_EXPERT}:run_wait"),
+    ("strike", "hit the target point with the held tool's head, driven down at speed", f"{_PRECISION}:run_strike"),
 ):
     register(SkillWord(_name, _description, _run))

@@ -238,7 +238,7 @@ def test_batched_state_reads_a_stacked_data_object(probe_plan):
     data = state_after(probe_plan, np.asarray(probe_plan.init_qpos), settle_steps=5)
     contact = SimpleNamespace(geom=np.stack([data.contact.geom] * 2), dist=np.stack([data.contact.dist] * 2))
     stacked = SimpleNamespace(contact=contact, **{k: np.stack([getattr(data, k)] * 2)
-                                                  for k in ("xpos", "xmat", "site_xpos", "site_xmat", "qpos")})
+                                                  for k in ("xpos", "xmat", "site_xpos", "site_xmat", "qpos", "qvel")})
     const = np.stack([program.params["const_pos"]] * 2)
     batched = batched_state(np, program.index, const, stacked)
     single = mujoco_state(program.index, program.params["const_pos"], data)

@@ -135,7 +135,7 @@ class _DeviceHooks(Hooks):
         params = {k: jnp.asarray(v)[member] for k, v in program.params.items()}
         c = data.contact
         state = gather_state(jnp, program.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
-                             data.site_xmat, data.qpos, c.geom1, c.geom2, c.dist)
+                             data.site_xmat, data.qpos, c.geom1, c.geom2, c.dist, data.qvel)
         new_memory, out = program_step(jnp, program.layout, state, params, memory, steps)
         memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
                               new_memory, memory)
