@@ -124,10 +124,14 @@ class RealBackend(Backend):
             self._driver = self._emulated.driver()
             if self.camera_names:
                 self._cameras = self._emulated.cameras(self.camera_names, self.width, self.height, self.depth)
-        else:
+        elif config.driver == "piper":
             from dojo.backends.real.piper_driver import PiperDriver
 
             self._driver = PiperDriver(plan.robot, self.can or config.can, interface="socketcan")
+        else:
+            raise ValueError(f"backend real: robot {config.robot} has no hardware driver yet (driver "
+                             f"{config.driver}; see dojo/backends/real/robots/{config.robot}.yaml); run it with "
+                             "backend.driver=emulator")
         self._driver.connect()
         self._embodiment = plan.embodiment
         self._kinematics = ArmKinematics(model, RobotIndex.build(model, plan.robot))

@@ -14,9 +14,18 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Self
+from collections.abc import Mapping
+from typing import Any, Self
 
 import numpy as np
+
+
+def home_of(robot: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """The reset pose of a robot from the compiler's robot handles: (arm joints [2, J], grippers [2] 0..1), and
+    its gripper's full width in metres (what 1 is)."""
+    ctrl = np.asarray(robot["home_ctrl"], dtype=float).reshape(2, -1)
+    max_width = float(robot["gripper_max_width"])
+    return (ctrl[:, :-1], ctrl[:, -1] / max_width), max_width
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """The emulated robot, assembled: the real-time world, the arms' controllers on their buses, the cameras.
 
 `EmulatedRobot` is what `backend.driver=emulator` runs against: a robot whose configuration names the `piper`
-driver gets PiPER controllers on two python-can virtual buses (channel names unique to this instance, as the
-SDK keeps one interface per channel name per process), and `driver()` is the same `PiperDriver` hardware uses,
-pointed at those buses.
+driver (PiPER, PiPER X) gets PiPER controllers on two python-can virtual buses (channel names unique to this
+instance, as the SDK keeps one interface per channel name per process), and `driver()` is the same
+`PiperDriver` hardware uses, pointed at those buses. A robot whose protocol the emulator does not speak (the
+ARX X5, driver `arx_x5`) is driven at joint level (`JointLevelDriver`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,9 @@ from dojo.backends.real.driver import Driver
 from dojo.backends.real.emulated_cameras import EmulatedCameras
 from dojo.backends.real.realtime_sim import RealTimeSim
 from dojo.backends.real.robot_config import RealRobotConfig
+
+EMULATED_DRIVERS = ("piper", "arx_x5")
+"""Robot drivers (robot configs' `driver`) the emulator stands in for."""
 
 
 @dataclass(frozen=True)
@@ -45,25 +49,35 @@ class EmulatedRobot:
 
     def __init__(self, model: mujoco.MjModel, robot: Mapping[str, Any], config: RealRobotConfig,
                  params: EmulatorParams = EmulatorParams(), qpos: Sequence[float] | None = None) -> None:
-        if config.driver != "piper":
-            raise ValueError(f"robot {config.robot!r}: no emulator for driver {config.driver!r} yet (piper only)")
-        from dojo.backends.real.piper_emulator import PiperCanEmulator
-
-        self.robot, self.params = dict(robot), params
+        if config.driver not in EMULATED_DRIVERS:
+            raise ValueError(f"robot {config.robot!r}: no emulator for driver {config.driver!r} "
+                             f"(emulated: {', '.join(EMULATED_DRIVERS)})")
+        self.robot, self.params, self.config = dict(robot), params, config
         self.sim = RealTimeSim(model, robot, config.joint_velocity, qpos)
-        self.channels = tuple(f"dojo-emulator-{uuid.uuid4().hex[:8]}-{side}" for side in ("left", "right"))
-        self.controllers = PiperCanEmulator(self.sim, self.channels, params=params)
+        self.channels: tuple[str, ...] = ()
+        self.controllers: Any = None
+        if config.driver == "piper":
+            from dojo.backends.real.piper_emulator import PiperCanEmulator
+
+            self.channels = tuple(f"dojo-emulator-{uuid.uuid4().hex[:8]}-{side}" for side in ("left", "right"))
+            self.controllers = PiperCanEmulator(self.sim, self.channels, params=params)
         self.sim.start()
 
     def driver(self) -> Driver:
-        """A driver for this robot, as on hardware but on the emulator's buses (not yet connected)."""
-        from dojo.backends.real.piper_driver import PiperDriver
+        """A driver for this robot (not yet connected): as on hardware but on the emulator's buses, or at joint
+        level for a protocol the emulator does not speak."""
+        if self.config.driver == "piper":
+            from dojo.backends.real.piper_driver import PiperDriver
 
-        return PiperDriver(self.robot, self.channels, interface="virtual")
+            return PiperDriver(self.robot, self.channels, interface="virtual")
+        from dojo.backends.real.joint_level_driver import JointLevelDriver
+
+        return JointLevelDriver(self.sim, self.robot, self.params.encoder_noise, self.params.seed)
 
     def cameras(self, names: Sequence[str], width: int, height: int, depth: bool = False) -> EmulatedCameras:
         return EmulatedCameras(self.sim, names, width, height, depth, self.params.camera_drop, self.params.seed)
 
     def close(self) -> None:
         self.sim.stop()
-        self.controllers.close()
+        if self.controllers is not None:
+            self.controllers.close()

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from dojo.backends.real.driver import Driver, RobotState
+from dojo.backends.real.driver import Driver, RobotState, home_of
 
 MILLIDEG_PER_RAD = 180_000.0 / math.pi
 MICRON_PER_M = 1_000_000.0
@@ -46,9 +46,7 @@ class PiperDriver(Driver):
         if len(channels) != 2:
             raise ValueError(f"a bimanual PiPER has one CAN bus per arm; got channels {list(channels)}")
         self.channels, self.interface, self.connect_timeout = tuple(channels), interface, connect_timeout
-        ctrl = np.asarray(robot["home_ctrl"], dtype=float).reshape(2, -1)
-        self.max_width = float(robot["gripper_max_width"])
-        self._home = (ctrl[:, :-1], ctrl[:, -1] / self.max_width)
+        self._home, self.max_width = home_of(robot)
         self._arms: list[Any] = []
 
     @property
