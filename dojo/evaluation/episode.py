@@ -61,6 +61,9 @@ class EpisodeResult:
     counters: dict[str, int] = field(default_factory=dict)
     """The backend's own counts over the episode, when it keeps any (the `real` backend: every command its safety
     layer clipped or refused, by kind, and its watchdog's holds), so that a trial's record says how it was run."""
+    backend: str = ""
+    """The backend that ran the episode: the one the run names, unless the plan required a feature that backend
+    lacks and the run sent it to another (`dojo.evaluation.routing`); empty in stores written before it was kept."""
 
     def __post_init__(self) -> None:
         """Validate, and normalise numpy scalars (backends produce them) to plain Python values, so that what is
@@ -93,6 +96,8 @@ class EpisodeResult:
             json.dumps(self.policy_meta, allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"EpisodeResult.policy_meta must be JSON data: {exc}") from exc
+        if not isinstance(self.backend, str):
+            raise ValueError(f"EpisodeResult.backend must be a backend name, got {self.backend!r}")
         for name in ("failure_reason", "video_path"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), str):
                 raise ValueError(f"EpisodeResult.{name} must be a string or None")

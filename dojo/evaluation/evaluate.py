@@ -139,7 +139,7 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
         rows = []
         for i, success, reason in ended:
             video = recorders[i].finish(last_obs[i], success)[0] if recorders else None
-            rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video))
+            rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video, backend.name))
         store.add_many(rows)
         for row in rows:
             progress.episode_finished(row)
@@ -229,11 +229,11 @@ def _with_episode(obs: dict[str, Any], slot: _Slot, cameras: tuple[str, ...]) ->
 
 
 def _row(run_id: str, slot: _Slot, success: bool, reason: str | None, policy_name: str,
-         policy_meta: dict[str, Any], now: float, video_path: str | None) -> EpisodeResult:
+         policy_meta: dict[str, Any], now: float, video_path: str | None, backend: str) -> EpisodeResult:
     item = slot.item
     return EpisodeResult(
         run_id=run_id, split=item.split, plan_hash=item.plan_hash, task=item.task, dimension=item.dimension,
         setting=item.setting, eval_seed=item.eval_seed, episode=item.episode, scene_seed=item.scene_seed,
         policy_name=policy_name, policy_meta=policy_meta, success=success, score=slot.score, steps=slot.steps,
         wall_time_s=now - slot.started, stage_times=slot.stage_times, failure_reason=reason,
-        video_path=video_path, success_terms=slot.terms, counters=slot.counters)
+        video_path=video_path, success_terms=slot.terms, counters=slot.counters, backend=backend)

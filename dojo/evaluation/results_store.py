@@ -21,21 +21,22 @@ from typing import Any
 
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 # What turns a store of each older version into the next one. Writers migrate when they open a store, readers
 # read an older store as it is (`_LEGACY_COLUMNS`): a report over last month's runs needs no write access.
 _MIGRATIONS: dict[int, str] = {
     1: "ALTER TABLE episodes ADD COLUMN success_terms TEXT NOT NULL DEFAULT '{}'",  # 2: which condition failed
     2: "ALTER TABLE episodes ADD COLUMN counters TEXT NOT NULL DEFAULT '{}'",  # 3: the backend's episode counters
+    3: "ALTER TABLE episodes ADD COLUMN backend TEXT NOT NULL DEFAULT ''",  # 4: which backend ran the episode
 }
-_LEGACY_COLUMNS: dict[int, dict[str, str]] = {1: {"success_terms": "'{}'", "counters": "'{}'"},
-                                              2: {"counters": "'{}'"}}
+_LEGACY_COLUMNS: dict[int, dict[str, str]] = {1: {"success_terms": "'{}'", "counters": "'{}'", "backend": "''"},
+                                              2: {"counters": "'{}'", "backend": "''"}, 3: {"backend": "''"}}
 STORE_FILENAME = "results.sqlite"  # the store's name inside a run folder
 
 _COLUMNS: tuple[str, ...] = (
     "run_id", "split", "plan_hash", "task", "dimension", "setting", "eval_seed", "episode", "scene_seed",
     "policy_name", "policy_meta", "success", "score", "stage_times", "steps", "wall_time_s", "failure_reason",
-    "video_path", "success_terms", "counters",
+    "video_path", "success_terms", "counters", "backend",
 )
 _JSON_COLUMNS = frozenset({"policy_meta", "stage_times", "success_terms", "counters"})
 _SUCCESS = _COLUMNS.index("success")
@@ -69,8 +70,8 @@ CREATE TABLE IF NOT EXISTS episodes (
     failure_reason TEXT,
     video_path TEXT,
     success_terms TEXT NOT NULL DEFAULT '{{}}',
-    backend TEXT NOT NULL DEFAULT '',
     counters TEXT NOT NULL DEFAULT '{{}}',
+    backend TEXT NOT NULL DEFAULT '',
     finished_at TEXT NOT NULL DEFAULT (strftime('%Y-%m-%dT%H:%M:%fZ', 'now')),
     PRIMARY KEY (run_id, plan_hash, eval_seed, episode)
 );

@@ -38,6 +38,8 @@ def test_run_records_every_episode_and_writes_the_report(tmp_path: Path) -> None
     rows = episodes(tmp_path / "r.sqlite")
     assert len(rows) == 6  # 3 episodes x the suite's two seeds
     assert all(not success and reason == "horizon" for success, _, _, reason in rows.values())
+    with ResultsStore(tmp_path / "r.sqlite", readonly=True) as store:
+        assert {row.backend for row in store.rows()} == {"mujoco"}  # each row names the backend that ran it
     assert "overall" in result.stdout and "stack_test" in result.stdout
     assert (tmp_path / "report.json").is_file() and (tmp_path / "report.html").is_file()
 

@@ -54,6 +54,7 @@ def test_rows_keep_terms_old_stores_migrate_and_the_report_names_unmet_condition
     db = sqlite3.connect(path)  # make it a store of the previous schema, as last month's runs are
     db.execute("ALTER TABLE episodes DROP COLUMN success_terms")
     db.execute("ALTER TABLE episodes DROP COLUMN counters")  # schema 3's column, added after schema 1
+    db.execute("ALTER TABLE episodes DROP COLUMN backend")  # schema 4's
     db.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     db.commit()
     db.close()
