@@ -27,6 +27,7 @@ from dojo.backends.program_json import program_to_json
 from dojo.backends.world_events import EventError, compile_events
 from dojo.language.facts import FactError, resolve_facts
 
+from dojo.compiler.actor_draws import draw_actors
 from dojo.compiler.horizon import task_horizon
 from dojo.compiler.robot_emit import apply_home
 from dojo.compiler.scene_emit import TABLE_ASSET, emit_scene
@@ -189,7 +190,8 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
     try:  # facts (the number on a drawn card) become this episode's values: backends see plain predicates
         program = resolve_facts({"success": task.data["success"], "stages": task.data.get("stages", []),
                                  "stage_order": task.data.get("stage_order", "any"),
-                                 "events": task.data.get("events", [])}, objects)
+                                 "events": task.data.get("events", []),
+                                 "actors": draw_actors(task.data.get("actors", []), task.id, setting, seed)}, objects)
     except FactError as exc:
         raise SpecError([task.problem(exc.path, str(exc))]) from None
     plan = Plan(

@@ -124,6 +124,7 @@ class _Sampler:
         self.fixtures: dict[str, PlacedObject] = {}  # filled as fixtures are placed, for regions on them
         self.colors_taken: dict[tuple[str, ...], set[str]] = {}  # objects sharing a colour list differ
         self.assets_taken: dict[tuple[str, ...], set[str]] = {}  # ... and so do objects sharing a query
+        self.made: dict[str, PlacedObject] = {}  # the objects made so far this draw (for `like`)
 
     def choose(self, candidates: list[Spec], vary: bool) -> Spec:
         """The first candidate by id, or with `vary` a random one, preferring candidates of this list that no
@@ -154,7 +155,10 @@ class _Sampler:
         return out
 
     def make_object(self, entry: dict, name: str, fixed: bool) -> PlacedObject:
-        if "draw_from" in entry:  # drawn in every setting: the episode's hidden fact (which number card)
+        twin = self.made.get(entry.get("like", ""))  # a copy of an earlier object, as drawn for this episode
+        if twin is not None:
+            asset = self.library.resolve(self.task, "asset", twin.asset)[0]
+        elif "draw_from" in entry:  # drawn in every setting: the episode's hidden fact (which number card)
             asset = self.choose([self.library.resolve(self.task, "asset", ref)[0] for ref in entry["draw_from"]],
                                 vary=True)
         elif self.cfg["instances"] and "variants" in entry:
@@ -168,6 +172,8 @@ class _Sampler:
             s_lo = s_hi = min(max(1.0, lo), hi)
         scale = float(self.rng.uniform(s_lo, s_hi)) if self.setting == "random" else (
             1.0 if s_lo <= 1.0 <= s_hi else (s_lo + s_hi) / 2)
+        if twin is not None:
+            scale = twin.scale
         color, rgba = entry.get("color"), None
         if "colors" in entry:
             taken = self.colors_taken.setdefault(tuple(entry["colors"]), set())
@@ -181,6 +187,8 @@ class _Sampler:
         elif choices and self.cfg["colors"]:
             pick = choices[int(self.rng.integers(len(choices)))]
             color, rgba = pick["name"], list(pick["rgba"])
+        if twin is not None:
+            color, rgba = twin.color, twin.rgba
         yaw_range = entry.get("yaw", [0.0, 0.0])
         yaw = float(self.rng.uniform(*yaw_range)) if yaw_range[0] != yaw_range[1] else float(yaw_range[0])
         b_lo, b_hi = asset_bounds(asset.data, asset.path.parent, scale) if asset.data["class"] in (
@@ -306,7 +314,11 @@ def sample_scene(library: SpecLibrary, task: Spec, setting: str, seed: int, redr
         # draw the instances again before giving up.
         sampler.assets_taken.clear()
         sampler.colors_taken.clear()
-        objects = [sampler.make_object(entry, name, fixed) for entry, name, fixed in expanded]
+        sampler.made.clear()
+        objects = []
+        for entry, name, fixed in expanded:
+            objects.append(sampler.make_object(entry, name, fixed))
+            sampler.made[name] = objects[-1]
         try:
             sampler.place(objects, [entry for entry, _, _ in expanded], spacing)
             break

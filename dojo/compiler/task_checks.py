@@ -47,6 +47,9 @@ def task_problems(task: dict) -> list[Problem]:
             if "region" in entry and entry["region"] not in regions:
                 problems.append((("scene", section, i, "region"),
                                  f"unknown region '{entry['region']}'{did_you_mean(entry['region'], regions)}", False))
+            if "like" in entry and entry["like"] not in seen - {name}:
+                problems.append((("scene", section, i, "like"), f"'like' names '{entry['like']}', which is not an "
+                                 f"object listed before this one{did_you_mean(entry['like'], seen)}", False))
             if "region" not in entry and "pos" not in entry:
                 problems.append((("scene", section, i), f"object '{name}' needs a region or a pos", False))
     for name, region in scene.get("regions", {}).items():
@@ -68,6 +71,7 @@ def task_problems(task: dict) -> list[Problem]:
     predicates += [(("stages", i, "when"), s["when"]) for i, s in enumerate(task.get("stages", []))]
     predicates += [(("events", i, "when"), e["when"]) for i, e in enumerate(task.get("events", [])) if "when" in e]
     problems += _event_problems(task.get("events", []), objects)
+    problems += _actor_problems(task.get("actors", []), {e["name"] for e in scene["objects"]}, regions)
     for path, pred in predicates:
         (op, arg), = pred.items()
         for ref_path, name, role, quantified in predicate_words.references(op, arg, path, False):
@@ -126,6 +130,25 @@ def _event_problems(events: list[dict], objects: set[str]) -> list[Problem]:
                 if base not in objects:
                     path = ("events", i, action) + ((k,) if isinstance(value, list) else ())
                     problems.append((path, f"unknown object '{base}'{did_you_mean(base, objects)}", False))
+    return problems
+
+
+def _actor_problems(actors: list[dict], movable: set[str], regions: set[str]) -> list[Problem]:
+    """A conveyor's belt must be a region and its items movable objects (not fixtures)."""
+    problems: list[Problem] = []
+    for i, actor in enumerate(actors):
+        spec = actor.get("conveyor")
+        if spec is None:
+            continue
+        if spec["belt"] not in regions:
+            problems.append((("actors", i, "conveyor", "belt"),
+                             f"unknown region '{spec['belt']}'{did_you_mean(spec['belt'], regions)}", False))
+        for k, entry in enumerate(spec["items"]):
+            for j, name in enumerate(entry if isinstance(entry, list) else [entry]):
+                if isinstance(name, str) and name not in movable:  # (a number is a pause)
+                    path = ("actors", i, "conveyor", "items", k) + ((j,) if isinstance(entry, list) else ())
+                    problems.append((path, f"'{name}' is not a movable object of the scene (a conveyor carries "
+                                           f"objects, not fixtures){did_you_mean(name, movable)}", False))
     return problems
 
 

@@ -91,5 +91,9 @@ for _name, _description, _run in (
     ("home", "return both arms to their home pose", f"{_EXPERT}:run_home"),
     ("wait", "hold still for `steps` control steps", f"{_EXPERT}:run_wait"),
     ("strike", "hit the target point with the held tool's head, driven down at speed", f"{_PRECISION}:run_strike"),
+    ("catch", "pick the object off the moving conveyor belt that carries it, fingers open across the belt where it "
+              "will pass (then put at the target, if one is given)", "dojo.experts.conveyor_skills:run_catch"),
+    ("lift", "raise the object `height` above the table and set it down again where it stood",
+     "dojo.experts.lift_skills:run_lift"),
 ):
     register(SkillWord(_name, _description, _run))

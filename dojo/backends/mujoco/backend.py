@@ -38,6 +38,7 @@ from dojo.backends.base import (
 )
 from dojo.backends.predicate_program import CompiledProgram, ProgramLayout, compile_program, init_memory, program_step
 from dojo.backends.predicate_state import mujoco_state
+from dojo.backends.world_actors import Actor, compile_actors
 from dojo.backends.world_events import EventState, WorldEvents, compile_events
 from dojo.backends.mujoco.kinematics import ArmKinematics, RobotIndex
 
@@ -58,6 +59,8 @@ class _Compiled:
     """The program's params with a leading axis of 1, ready to concatenate over slots."""
     events: WorldEvents | None = None
     """The task's events (`dojo.backends.world_events`), run in `step`; None when it has none."""
+    actors: list[Actor] = field(default_factory=list)
+    """The task's actors (`dojo.backends.world_actors`), run before every physics step."""
 
 
 @dataclass
@@ -76,6 +79,8 @@ class _Slot:
     terms: dict[str, bool] = field(default_factory=dict)
     clipped_total: int = 0
     events: EventState | None = None
+    actors: list[Any] = field(default_factory=list)
+    """Each actor's state for this episode."""
 
 
 class MujocoBackend(Backend):
@@ -154,6 +159,7 @@ class MujocoBackend(Backend):
         data.qvel[:] = plan.init_qvel
         data.ctrl[:] = plan.init_ctrl
         slot.events = slot.compiled.events.start(data) if slot.compiled.events else None
+        slot.actors = [actor.start(data) for actor in slot.compiled.actors]
         mujoco.mj_forward(model, data)
         slot.memory = init_memory(np, slot.compiled.program.layout, 1)
         slot.step, slot.done, slot.end_reason, slot.success, slot.score, slot.clipped_total = 0, False, None, False, 0.0, 0
@@ -205,6 +211,8 @@ class MujocoBackend(Backend):
             slot.data.ctrl[slot.compiled.robot.actuators] = ctrl[k]
             if slot.events is not None:
                 slot.compiled.events.hold(slot.events, slot.data)
+            for actor, state in zip(slot.compiled.actors, slot.actors):
+                actor.hold(state, slot.data, slot.step)
             mujoco.mj_step(slot.compiled.model, slot.data, nstep=slot.plan.n_substeps)
 
         chunks = [range(t, len(slots), self.num_threads) for t in range(min(self.num_threads, len(slots)))]
@@ -340,4 +348,5 @@ def _build(plan: Any) -> _Compiled:
     model = plan.model()
     program = compile_program(plan, model)
     return _Compiled(model, program, RobotIndex.build(model, plan.robot),
-                     {k: v[None] for k, v in program.params.items()}, compile_events(plan, model))
+                     {k: v[None] for k, v in program.params.items()}, compile_events(plan, model),
+                     compile_actors(plan, model))

@@ -1,0 +1,35 @@
+"""A task's actors (`actors:` in the task spec): built-in behaviours, chosen by name, that act on the world every
+control step inside the backend's step, on the simulator state (a policy sees only their effects, in its images).
+
+`compile_actors(plan, model)` builds each actor of `plan.program["actors"]` (its per-episode choices already drawn
+by the compiler, `dojo.compiler.actor_draws`) through `BUILDERS`; an actor offers `start(data) -> state` for a
+fresh episode and `hold(state, data, step)`, called before every physics step with the control steps done so far.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import mujoco
+
+from dojo.backends.conveyor import Conveyor
+
+
+class Actor(Protocol):
+    def start(self, data: mujoco.MjData) -> Any: ...
+
+    def hold(self, state: Any, data: mujoco.MjData, step: int) -> None: ...
+
+
+BUILDERS: dict[str, Callable[[Any, mujoco.MjModel, dict[str, Any]], Actor]] = {"conveyor": Conveyor}
+"""Actor name (the key in the spec) -> its constructor (plan, model, resolved spec)."""
+
+
+def compile_actors(plan: Any, model: mujoco.MjModel) -> list[Actor]:
+    """The plan's actors, built against its model (empty when the task has none)."""
+    out = []
+    for actor in plan.program.get("actors", []):
+        (name, spec), = actor.items()
+        out.append(BUILDERS[name](plan, model, spec))
+    return out
