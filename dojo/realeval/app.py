@@ -121,7 +121,8 @@ def create_app(session: ConsoleSession, token: str) -> Any:
         return {"stopped": "at the next step"}
 
     @app.post("/api/estop")
-    def estop() -> dict[str, float]:
+    async def estop() -> dict[str, float]:
+        """On the event loop itself, not the thread pool the other calls wait for: the hold is sent at once."""
         return {"estop_at": session.estop()}
 
     @app.post("/api/trials/{code}/layout")

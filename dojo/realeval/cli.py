@@ -2,6 +2,7 @@
 
 Examples:
     dojo console suite=robodojo_real_piper policy.url=ws://HOST:PORT [token=...] [port=8787]
+    dojo console scores outputs/robodojo_real_piper/console/my_policy/results.sqlite
     dojo console suite=robodojo_real_piper policy=zero backend.driver=piper backend.can=[can_left,can_right]
 
 Arguments are `key=value` (dotted keys, lists in brackets), as for `dojo run`. The trials go into the results
@@ -9,6 +10,8 @@ store `<out>/results.sqlite` (default out: `outputs/<suite>/console/<policy>`), 
 reference layouts under `layouts` (default `<out>/layouts`). The token guards every page; it is `token=`, else
 `$DOJO_CONSOLE_TOKEN`, else a new one printed once. The console listens on 127.0.0.1 unless `host=` says
 otherwise: it commands a robot, so put it on a network only behind your lab's own access control.
+
+`dojo console scores STORE` prints the raters' verdicts by policy and task: the one place policies are named.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from dojo.evaluation.evaluate import QueuedEpisode, run_id_for
+from dojo.evaluation.evaluate import run_id_for
 
 DEFAULTS: dict[str, Any] = {
     "suite": None, "packs": [], "tasks": None, "episodes": None, "seeds": None, "plans": None,
@@ -63,9 +66,7 @@ def build_session(cfg: Any) -> Any:
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
     stats = compile_suite(library, suite, plan_dir, seeds=seeds, episodes=cfg.episodes, tasks=tasks,
                           demo_lengths=load_demo_lengths(horizons_file("auto")))
-    queue = [QueuedEpisode(plan_path=p.plan_path, plan_hash=p.plan_hash, task=p.episode.task,
-                           dimension=p.episode.dimension, setting=p.episode.setting, eval_seed=p.episode.eval_seed,
-                           episode=p.episode.index, scene_seed=p.episode.scene_seed) for p in stats.episodes]
+    queue = list(stats.episodes)
     if not queue:
         raise ValueError(f"suite {suite.id} has no trials to run")
     embodiment = library.get("task", queue[0].task).data["embodiment"]
@@ -95,7 +96,10 @@ def build_session(cfg: Any) -> Any:
 
 
 def console_main(argv: list[str]) -> int:
-    """`dojo console key=value ...`: build the session and serve it until interrupted."""
+    """`dojo console key=value ...`: build the session and serve it until interrupted; `dojo console scores
+    STORE`: the raters' verdicts."""
+    if argv[:1] == ["scores"]:
+        return _print_scores(argv[1:])
     import uvicorn
 
     from dojo.realeval.app import create_app
@@ -112,6 +116,27 @@ def console_main(argv: list[str]) -> int:
         uvicorn.run(create_app(session, str(token)), host=str(cfg.host), port=int(cfg.port), log_level="warning")
     finally:
         session.close()
+    return 0
+
+
+def _print_scores(argv: list[str]) -> int:
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    from dojo.evaluation.results_store import resolve_store_path
+    from dojo.realeval.scores import real_scores
+
+    if len(argv) != 1:
+        raise ValueError("usage: dojo console scores STORE (a results.sqlite or its run folder)")
+    table = Table(title="RealEval: raters' verdicts")
+    for column in ("policy", "task", "trials", "settled", "flagged", "open", "success %", "score", "appeals"):
+        table.add_column(column, justify="left" if column in ("policy", "task") else "right")
+    for s in real_scores(resolve_store_path(argv[0])):
+        table.add_row(escape(s.policy), escape(s.task), str(s.trials), str(s.settled), str(s.flagged), str(s.open),
+                      "-" if s.success_rate is None else f"{s.success_rate:.1f}",
+                      "-" if s.score is None else f"{s.score:.1f}", str(s.appeals))
+    Console(soft_wrap=True).print(table)
     return 0
 
 
