@@ -14,6 +14,8 @@ from typing import Any, Protocol
 import mujoco
 
 from dojo.backends.conveyor import Conveyor
+from dojo.backends.demonstrator import Demonstrator
+from dojo.backends.opponent import Opponent
 
 
 class Actor(Protocol):
@@ -22,7 +24,8 @@ class Actor(Protocol):
     def hold(self, state: Any, data: mujoco.MjData, step: int) -> None: ...
 
 
-BUILDERS: dict[str, Callable[[Any, mujoco.MjModel, dict[str, Any]], Actor]] = {"conveyor": Conveyor}
+BUILDERS: dict[str, Callable[[Any, mujoco.MjModel, dict[str, Any]], Actor]] = {
+    "conveyor": Conveyor, "opponent": Opponent, "demonstrator": Demonstrator}
 """Actor name (the key in the spec) -> its constructor (plan, model, resolved spec)."""
 
 

@@ -33,19 +33,36 @@ def _as_given(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
     return dict(spec)
 
 
+def _sequence(entries: list[Any], rng: np.random.Generator) -> list[Any]:
+    """A sequence with each list inside it replaced by its members in a random order."""
+    out: list[Any] = []
+    for entry in entries:
+        if isinstance(entry, list):
+            out += [entry[int(k)] for k in rng.permutation(len(entry))]
+        else:
+            out.append(entry)
+    return out
+
+
 def _conveyor(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
     """Items in their order (a group written as a list comes in a random order) and a speed from its range."""
-    items: list[str] = []
-    for entry in spec["items"]:
-        if isinstance(entry, list):
-            items += [entry[int(k)] for k in rng.permutation(len(entry))]
-        else:
-            items.append(entry)
+    items = _sequence(spec["items"], rng)
     speed = spec["speed"]
     if isinstance(speed, list):
         speed = float(rng.uniform(speed[0], speed[1]))
     return {**spec, "items": items, "speed": float(speed)}
 
 
-DRAWS = {"conveyor": _conveyor}
+def _opponent(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
+    """The `random` rule's preference order over the cells (the opponent takes the first free one)."""
+    cells = list(spec["cells"])
+    return {**spec, "order": [cells[int(k)] for k in rng.permutation(len(cells))]}
+
+
+def _demonstrator(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
+    """The objects in the order it moves them."""
+    return {**spec, "objects": _sequence(spec["objects"], rng)}
+
+
+DRAWS = {"conveyor": _conveyor, "opponent": _opponent, "demonstrator": _demonstrator}
 """Per actor name, how its choices are drawn (actors without choices are taken as written)."""

@@ -71,7 +71,8 @@ def task_problems(task: dict) -> list[Problem]:
     predicates += [(("stages", i, "when"), s["when"]) for i, s in enumerate(task.get("stages", []))]
     predicates += [(("events", i, "when"), e["when"]) for i, e in enumerate(task.get("events", [])) if "when" in e]
     problems += _event_problems(task.get("events", []), objects)
-    problems += _actor_problems(task.get("actors", []), {e["name"] for e in scene["objects"]}, regions)
+    problems += _actor_problems(task.get("actors", []), {e["name"] for e in scene["objects"]}, regions, objects,
+                                groups)
     for path, pred in predicates:
         (op, arg), = pred.items()
         for ref_path, name, role, quantified in predicate_words.references(op, arg, path, False):
@@ -133,10 +134,28 @@ def _event_problems(events: list[dict], objects: set[str]) -> list[Problem]:
     return problems
 
 
-def _actor_problems(actors: list[dict], movable: set[str], regions: set[str]) -> list[Problem]:
-    """A conveyor's belt must be a region and its items movable objects (not fixtures)."""
+def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], objects: set[str],
+                    groups: set[str]) -> list[Problem]:
+    """A conveyor's belt must be a region and its items movable objects (not fixtures); an opponent's board an
+    object and its pieces groups; a demonstrator's objects movable."""
     problems: list[Problem] = []
     for i, actor in enumerate(actors):
+        opponent = actor.get("opponent")
+        if opponent is not None:
+            for key in ("pieces", "after"):
+                if opponent[key] not in groups:
+                    problems.append((("actors", i, "opponent", key), f"unknown group '{opponent[key]}'"
+                                                                     f"{did_you_mean(opponent[key], groups)}", False))
+            if opponent["board"] not in objects:
+                problems.append((("actors", i, "opponent", "board"), f"unknown object '{opponent['board']}'"
+                                                                     f"{did_you_mean(opponent['board'], objects)}", False))
+        shown = actor.get("demonstrator", {}).get("objects", [])
+        for k, entry in enumerate(shown):
+            for j, name in enumerate(entry if isinstance(entry, list) else [entry]):
+                if name not in movable:
+                    path = ("actors", i, "demonstrator", "objects", k) + ((j,) if isinstance(entry, list) else ())
+                    problems.append((path, f"'{name}' is not a movable object of the scene{did_you_mean(name, movable)}",
+                                     False))
         spec = actor.get("conveyor")
         if spec is None:
             continue

@@ -95,5 +95,9 @@ for _name, _description, _run in (
               "will pass (then put at the target, if one is given)", "dojo.experts.conveyor_skills:run_catch"),
     ("lift", "raise the object `height` above the table and set it down again where it stood",
      "dojo.experts.lift_skills:run_lift"),
+    ("place_free", "put the object on the first free one of the target's `places` (a board game's move)",
+     "dojo.experts.board_skills:run_place_free"),
+    ("imitate", "once the demonstrator is done, put the robot's partner of each of its objects (`pairs`) at the "
+                "target, in the order it moved them", "dojo.experts.imitation_skills:run_imitate"),
 ):
     register(SkillWord(_name, _description, _run))
