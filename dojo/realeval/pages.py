@@ -87,7 +87,7 @@ async function refreshAlignment() {
   const parts = Object.entries(a).map(([c, v]) => `${c} ${v}`); $('alignment').textContent = parts.join(', ') || '-';
 }
 function connect() {
-  const ws = new WebSocket(`ws://${location.host}/ws/state`);
+  const ws = new WebSocket(`${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws/state`);
   ws.onmessage = (m) => {
     const s = JSON.parse(m.data); current = s.trial;
     $('safety').textContent = s.safety; $('step').textContent = s.step;

@@ -34,7 +34,8 @@ import numpy as np
 from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import Plan
 from dojo.evaluation.episode import EpisodeResult
-from dojo.evaluation.evaluate import QueuedEpisode, evaluate
+from dojo.compiler.episodes import PlannedEpisode
+from dojo.evaluation.evaluate import evaluate
 from dojo.evaluation.policy_link import PolicyLink
 from dojo.evaluation.recorder import EpisodeRecorder
 from dojo.evaluation.results_store import ResultsStore
@@ -47,7 +48,7 @@ class Trial:
     """One trial of the session: its blind `code`, the episode it runs, and where it stands."""
 
     code: str
-    item: QueuedEpisode
+    item: PlannedEpisode
     status: str = QUEUED
     end_reason: str | None = None
     steps: int = 0
@@ -103,7 +104,7 @@ class _Progress:
 class ConsoleSession:
     """A real suite's trials at one robot. `queue` is the suite's compiled episodes, in protocol order."""
 
-    def __init__(self, queue: Sequence[QueuedEpisode], policy: PolicyLink, run_id: str, store_path: Path,
+    def __init__(self, queue: Sequence[PlannedEpisode], policy: PolicyLink, run_id: str, store_path: Path,
                  out_dir: Path, backend: dict[str, Any], cameras: Sequence[str], size: tuple[int, int],
                  layouts: Path) -> None:
         """`backend`: the `backend=real` config (name and settings); `cameras` rendered at `size` (the policy's
@@ -239,7 +240,7 @@ class ConsoleSession:
                 if self.current is not None and self.current.status == RUNNING:
                     self.current.status, self.current.end_reason = READY, f"error: {exc}"
 
-    def plan(self, item: QueuedEpisode) -> Plan:
+    def plan(self, item: PlannedEpisode) -> Plan:
         """The trial's plan (read once)."""
         if item.plan_path not in self._plans:
             self._plans[item.plan_path] = Plan.load(item.plan_path)
@@ -252,6 +253,8 @@ class ConsoleSession:
         if self.backend.num_envs == 0:
             self.backend.load([plan])
         self._seen(self.backend.reset([0], [plan])[0])
+        if self.current is not None and self.current is not trial and self.current.status == READY:
+            self.current.status = QUEUED  # its scene is no longer the one laid out
         self.current, self.error = trial, None
         trial.status = READY
 
@@ -276,7 +279,7 @@ class ConsoleSession:
             self.step = steps
 
 
-def _blind_code(secret: str, item: QueuedEpisode) -> str:
+def _blind_code(secret: str, item: PlannedEpisode) -> str:
     """A trial's public name: unguessable without the session's secret, so it says nothing of the policy."""
     key = f"{secret}:{item.plan_hash}:{item.eval_seed}:{item.episode}".encode()
     return hashlib.sha256(key).hexdigest()[:10]
