@@ -130,6 +130,18 @@ def test_a_target_outside_the_workspace_is_refused(layer) -> None:
     assert layer.driver.sent == [] and layer.counters["refused_workspace"] == 1
 
 
+@pytest.mark.parametrize(("turn", "refused"), [(0.6, None), (0.9, "refused_arm_collision")])
+def test_a_target_crossing_the_arms_is_refused(layer, turn: float, refused: str | None) -> None:
+    """Both base joints turned towards the other arm: 0.6 rad leaves 8 cm between the arms, 0.9 rad crosses them
+    (each arm alone is inside the workspace and above the table)."""
+    _loosen(layer)
+    q, grip = layer.driver.home_pose
+    q[0, 0], q[1, 0] = -turn, turn
+    verdict = layer.command(q, grip)
+    assert verdict.refused == refused and verdict.sent == (refused is None)
+    assert layer.counters["refused_arm_collision"] == (refused is not None)
+
+
 def test_the_watchdog_holds_when_commands_stop(layer) -> None:
     q, grip = layer.driver.home_pose
     assert layer.command(q, grip).sent

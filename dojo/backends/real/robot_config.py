@@ -27,6 +27,7 @@ class RealRobotConfig:
     workspace_hi: np.ndarray
     table_z: float
     table_penetration: float
+    arm_clearance: float
     watchdog_s: float
     estop_hold_s: float
     return_speed: float
@@ -49,6 +50,7 @@ class RealRobotConfig:
             workspace_lo=np.asarray(safety["workspace"]["lo"], dtype=float),
             workspace_hi=np.asarray(safety["workspace"]["hi"], dtype=float),
             table_z=float(safety["table_z"]), table_penetration=float(safety["table_penetration"]),
+            arm_clearance=float(safety["arm_clearance"]),
             watchdog_s=float(safety["watchdog_ms"]) / 1000.0, estop_hold_s=float(safety["estop_hold_s"]),
             return_speed=float(safety["return_speed"]),
         )

@@ -9,7 +9,8 @@ Per command (one control step's joint targets [2, J] and grippers [2]), in this 
 5. the step from the previous command is clipped to the joints' velocity limits, and its speed-up to their
    accelerations (slowing down is never limited, so a clipped command never overshoots its target);
 6. the result is posed on the robot's collision model (`workspace.RobotGeometry`): a target that puts any
-   moving geom below the table plane (beyond `table_penetration`) or outside the workspace box is refused.
+   moving geom below the table plane (beyond `table_penetration`) or outside the workspace box, or brings the
+   two arms closer to each other than `arm_clearance`, is refused.
 What passes is sent; a refused command sends nothing, so the arms keep the last safe target.
 
 A supervisor (thread, `start()`) runs `tick` at SUPERVISOR_HZ: with no command for `watchdog_s` it holds the
@@ -35,7 +36,7 @@ from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.backends.real.workspace import RobotGeometry
 
 COUNTERS = ("refused_estop", "refused_nonfinite", "refused_jump", "refused_table", "refused_workspace",
-            "clipped_joint_limit", "clipped_gripper", "clipped_velocity", "clipped_acceleration", "watchdog_holds")
+            "refused_arm_collision", "clipped_joint_limit", "clipped_gripper", "clipped_velocity", "clipped_acceleration", "watchdog_holds")
 SUPERVISOR_HZ = 100.0
 HOME_TOLERANCE = 0.01
 """rad: the return to the reset pose is over when every joint is this close to it."""
@@ -150,6 +151,8 @@ class SafetyLayer:
             return "refused_table"
         if (lo < self.config.workspace_lo).any() or (hi > self.config.workspace_hi).any():
             return "refused_workspace"
+        if self.geometry.arms_gap(lo, hi, self.config.arm_clearance) < self.config.arm_clearance:
+            return "refused_arm_collision"
         return None
 
     def _refuse(self, counter: str) -> Verdict:

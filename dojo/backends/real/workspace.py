@@ -4,7 +4,9 @@ The safety layer asks this before a command is sent: the robot's MuJoCo model (t
 the same geometry that collides in simulation) is posed at the target on a private MjData, and every geom of
 the moving links (everything below each arm's base, fingers included, at the commanded opening) is bounded by
 an axis-aligned box. The checks are on those boxes: the lowest point against the table plane, all of them
-against the workspace box. The fixed bases are left out: they are mounted on the table.
+against the workspace box. The fixed bases are left out: they are mounted on the table. The two arms against
+each other: the pairs of left- and right-arm geoms whose boxes come close are measured exactly (MuJoCo's
+`mj_geomDistance`, the same primitives), so that a target crossing the arms is refused before it is sent.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ class RobotGeometry:
         moving = [g for g in range(model.ngeom)
                   if model.body_rootid[body[g]] in bases and body[g] not in bases]
         self.geoms = np.asarray(moving, dtype=int)
+        base_list = self.index.bases.tolist()
+        self.arm = np.asarray([base_list.index(model.body_rootid[body[g]]) for g in moving], dtype=int)
+        """Which arm (0 left, 1 right) each of `geoms` belongs to."""
         self._finger_adr = np.asarray([[model.joint(j).qposadr[0] for j in pair] for pair in robot["finger_joints"]])
         self.max_width = float(robot["gripper_max_width"])
 
@@ -54,3 +59,16 @@ class RobotGeometry:
         other = ~(box | sphere | capsule)
         half[other] = m.geom_rbound[g][other][:, None]
         return center - half, center + half
+
+    def arms_gap(self, lo: np.ndarray, hi: np.ndarray, within: float) -> float:
+        """The smallest distance between the left and the right arm's geoms (negative: they overlap), as posed
+        by the last `boxes()` call, whose corners `lo`, `hi` are given; `within` when no two geoms' boxes are
+        that close (only those pairs are measured)."""
+        left, right = np.flatnonzero(self.arm == 0), np.flatnonzero(self.arm == 1)
+        gap = np.maximum(lo[left, None, :] - hi[None, right, :], lo[None, right, :] - hi[left, None, :]).max(axis=2)
+        best, fromto = within, np.zeros(6)
+        for i, j in zip(*np.nonzero(gap < within)):
+            distance = mujoco.mj_geomDistance(self.model, self.data, int(self.geoms[left[i]]),
+                                              int(self.geoms[right[j]]), within, fromto)
+            best = min(best, float(distance))
+        return best
