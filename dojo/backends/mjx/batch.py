@@ -20,6 +20,7 @@ call on (`Engine.compilations()` stays 1).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from functools import partial
@@ -32,6 +33,7 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.sharding import Placement
 
 log = logging.getLogger(__name__)
 Tree = Any
@@ -100,7 +102,8 @@ class BucketArrays:
     in_axes: Tree
 
 
-def _prepare(bucket: Bucket, size: int, impl: str) -> BucketArrays:
+def _prepare(bucket: Bucket, size: int, impl: str, placement: Placement) -> BucketArrays:
+    """The bucket's model and member table, replicated on every device of `placement`."""
     mx = mjx.put_model(bucket.model, impl=impl)
     table = {}
     for name, rows in bucket.table().items():
@@ -110,7 +113,7 @@ def _prepare(bucket: Bucket, size: int, impl: str) -> BucketArrays:
         else:
             table[name] = jnp.asarray(rows, dtype=jnp.float32)
     in_axes = jax.tree.map(lambda _: None, mx).tree_replace({name: 0 for name in bucket.varying})
-    return BucketArrays(bucket, size, mx, table, in_axes)
+    return BucketArrays(bucket, size, placement.put_replicated(mx), placement.put_replicated(table), in_axes)
 
 
 def _initial_data(arr: BucketArrays, impl: str) -> Tree:
@@ -159,7 +162,8 @@ class Hooks:
 def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax.Array], data: Tree, extra: Tree,
                  member: jax.Array, reset: jax.Array, stepping: jax.Array, inputs: Tree, steps: jax.Array
                  ) -> tuple[Tree, Tree, Tree]:
-    """One control step of one bucket (traced inside `Engine.tick`)."""
+    """One control step of one bucket (traced inside `Engine.tick`), on the rows of the batch this device holds."""
+    arr = dataclasses.replace(arr, size=member.shape[0])
     rows = {name: table[name][member] for name in arr.bucket.varying}
     m = mx.tree_replace(rows)
     init = data.replace(qpos=table["qpos"][member].astype(data.qpos.dtype),
@@ -180,14 +184,14 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     return data, extra, outputs
 
 
-def _stable(tree: Tree, like: Tree) -> Tree:
-    """`tree` with the dtypes of `like`, no weak types, committed to the device like a jitted call's outputs.
+def _stable(tree: Tree, like: Tree, placement: Placement) -> Tree:
+    """`tree` with the dtypes of `like`, no weak types, committed to the devices like a jitted call's outputs
+    (split along the batch axis).
 
     A host round trip makes every leaf strongly typed; committing matters too: jit keys its cache on it, and
     uncommitted first inputs followed by committed outputs compiled the tick twice.
     """
-    device = jax.devices()[0]
-    return jax.tree.map(lambda x, s: jax.device_put(np.asarray(x).astype(s.dtype), device), tree, like)
+    return jax.tree.map(lambda x, s: placement.put_batched(np.asarray(x).astype(s.dtype)), tree, like)
 
 
 class Engine:
@@ -198,14 +202,21 @@ class Engine:
     (int32 [B], for predicates); it keeps the new state in `self.data` / `self.extra` and returns the hooks'
     outputs per bucket (device arrays, nothing waits for the device). Envs with the reset flag start their
     member's episode; only envs with the stepping flag advance.
+
+    `placement` (all local devices when None): every batch is split over its devices along the env axis
+    (`sharding`), so each size must be a multiple of their count (`Placement.padded`).
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
-                 example_inputs: Sequence[Tree] | None = None):
+                 example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None):
         self.impl = impl
         self.hooks = hooks or Hooks()
-        self.arrays = [_prepare(b, n, impl) for b, n in zip(buckets, sizes)]
-        self._tick = jax.jit(self._tick_all, donate_argnums=(2, 3))
+        self.placement = placement or Placement.over(None, impl)
+        self.placement.check(sizes)
+        self.arrays = [_prepare(b, n, impl, self.placement) for b, n in zip(buckets, sizes)]
+        p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
+        self._tick = jax.jit(p.per_device(self._tick_all, 2, 7), donate_argnums=(2, 3),
+                             in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
@@ -213,8 +224,8 @@ class Engine:
         flags = self._flags()
         shapes = jax.eval_shape(self._tick_all, self._models(), self._tables(), data, extra, *flags[:3], inputs,
                                 flags[3])
-        self.data = _stable(data, tuple(s[0] for s in shapes))
-        self.extra = _stable(extra, tuple(s[1] for s in shapes))
+        self.data = _stable(data, tuple(s[0] for s in shapes), p)
+        self.extra = _stable(extra, tuple(s[1] for s in shapes), p)
 
     def _models(self) -> tuple[Tree, ...]:
         return tuple(a.mx for a in self.arrays)
