@@ -72,6 +72,8 @@ class _Compiler:
         self.const_pos: list[np.ndarray] = []
         self.joints: dict[str, int] = {}
         self.qpos_adr: list[int] = []
+        self.speeds: dict[str, int] = {}
+        self.dof_adr: list[int] = []
         self.atoms: dict[str, int] = {}
         self.atom_bodies: list[set[int]] = []
         self.presses: list[Press] = []
@@ -203,6 +205,14 @@ class _Compiler:
             self.qpos_adr.append(int(self.model.jnt_qposadr[jid]))
         return self.joints[ref]
 
+    def joint_speed(self, ref: str) -> int:
+        """Column of `state["qvel"]` holding the speed of joint `ref` (object/joint; one per joint)."""
+        self.joint(ref)  # checks the name, listing the object's joints when it is wrong
+        if ref not in self.speeds:
+            self.speeds[ref] = len(self.dof_adr)
+            self.dof_adr.append(int(self.model.joint(ref).dofadr[0]))
+        return self.speeds[ref]
+
     def press(self, ref: str) -> int:
         """Press slot of a button (one per button, however many predicates count its presses).
 
@@ -305,7 +315,7 @@ def resolve_program(plan: Any, model: mujoco.MjModel | None = None) -> CompiledP
         n_order=comp.n_order, terms=terms, term_names=tuple(words.render(p) for p in term_preds), triggers=triggers,
     )
     index = StateIndex(tuple(comp.frame_kind), tuple(comp.frame_id), tuple(comp.qpos_adr), comp.geom_atom(),
-                       len(comp.atom_bodies))
+                       len(comp.atom_bodies), tuple(comp.dof_adr))
     f = len(comp.frame_kind)
     c = np.asarray(comp.frame_c).reshape(f, 3)
     h = np.asarray(comp.frame_h).reshape(f, 3)

@@ -4,7 +4,7 @@ A compiled program (see `predicate_program`) names a few *frames* (bodies, sites
 regions), a few joints and a few contact *atoms* (objects, the table, each arm). `StateIndex` holds where they
 are in one model; `gather_state` turns a batch of simulation arrays into the predicate state
 
-    {"pos": [N, F, 3], "mat": [N, F, 3, 3], "qpos": [N, J], "qvel": [N, nv], "contact": bool [N, A, A]}
+    {"pos": [N, F, 3], "mat": [N, F, 3, 3], "qpos": [N, J], "qvel": [N, V], "contact": bool [N, A, A]}
 
 with the same code for both backends. The MJX backend calls `batched_state(jnp, index, const_pos, data)` on an
 `mjx.Data` stacked over environments (all environments of a bucket share one model structure, hence one
@@ -40,6 +40,8 @@ class StateIndex:
     geom_atom: tuple[int, ...]
     """Per geom of the model: its atom, or n_atoms for geoms no predicate looks at."""
     n_atoms: int
+    dof_adr: tuple[int, ...] = ()
+    """Velocity addresses of the joints whose speed a predicate reads (`struck`), in `state["qvel"]` order."""
 
     @cached_property
     def arrays(self) -> dict[str, np.ndarray]:
@@ -49,6 +51,7 @@ class StateIndex:
         return {"body": np.where(kind == BODY, ident, 0), "site": np.where(kind == SITE, ident, 0),
                 "is_body": kind == BODY, "is_site": kind == SITE,
                 "qpos": np.asarray(self.qpos_adr, dtype=np.int32).reshape(-1),
+                "dof": np.asarray(self.dof_adr, dtype=np.int32).reshape(-1),
                 "geom_atom": np.asarray(self.geom_atom, dtype=np.int32).reshape(-1)}
 
 
@@ -60,8 +63,9 @@ def gather_state(xp: Any, index: StateIndex, const_pos: Array, xpos: Array, xmat
     Arrays are batched over N: `xpos [N, nbody, 3]`, `xmat [N, nbody, 3, 3]` or `[N, nbody, 9]`, likewise
     the sites, `qpos [N, nq]`, contacts `geom1`, `geom2`, `dist [N, C]`; `const_pos [N, F, 3]` comes from the
     program's params (`params["const_pos"]`). A fixed number of gathers whatever the number of frames.
-    `qvel [N, nv]` is kept whole (`struck` reads a joint's speed by its velocity address); without it the state
-    has no velocity columns.
+    `qvel [N, nv]` gives the speeds of the program's V joints (`index.dof_adr`, those `struck` reads), gathered
+    like their positions, so environments whose models differ in size (clutter) batch together; without it they
+    read as zero.
     """
     ix = index.arrays
     n = qpos.shape[0]
@@ -76,7 +80,7 @@ def gather_state(xp: Any, index: StateIndex, const_pos: Array, xpos: Array, xmat
         "pos": pos,
         "mat": mat,
         "qpos": qpos[:, ix["qpos"]],
-        "qvel": qvel if qvel is not None else xp.zeros((n, 0), dtype=qpos.dtype),
+        "qvel": qvel[:, ix["dof"]] if qvel is not None else xp.zeros((n, len(index.dof_adr)), dtype=qpos.dtype),
         "contact": contact_matrix(xp, xp.asarray(ix["geom_atom"]), geom1, geom2, dist, index.n_atoms),
     }
 

@@ -13,7 +13,7 @@ import os
 from functools import partial
 from pathlib import Path
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
@@ -25,22 +25,12 @@ from dojo.backends.mujoco.render import ensure_headless_gl
 from dojo.backends.registry import factory_from_config
 
 from dojo.evaluation.camera_budget import budget_message, image_size, images_per_second
-from dojo.evaluation.evaluate import QueuedEpisode, evaluate, run_id_for
+from dojo.compiler.episodes import PlannedEpisode
+from dojo.evaluation.evaluate import evaluate, run_id_for
 from dojo.evaluation.policy_link import PRIVILEGED_NOTE, is_privileged, policy_config_for
 from dojo.evaluation.recorder import EpisodeRecorder, record_cameras
 
-if TYPE_CHECKING:
-    from dojo.compiler.suite_compile import CompileStats
-
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
-
-
-def _queue(stats: CompileStats, split: str) -> list[QueuedEpisode]:
-    """The compiled suite's episodes, in protocol order, for the evaluation loop."""
-    return [QueuedEpisode(plan_path=p.plan_path, plan_hash=p.plan_hash, task=p.episode.task,
-                          dimension=p.episode.dimension, setting=p.episode.setting, eval_seed=p.episode.eval_seed,
-                          episode=p.episode.index, scene_seed=p.episode.scene_seed, split=split)
-            for p in stats.episodes]
 
 
 def _hidden_seeds(cfg: DictConfig, suite: Any) -> list[int] | None:
@@ -63,7 +53,7 @@ def _backend_factory(backend: dict[str, Any], metadata: Any, cameras: tuple[str,
                                privileged=is_privileged(metadata), plan_paths=plan_paths)
 
 
-def _routes(cfg: DictConfig, queue: list[QueuedEpisode], quiet: bool) -> list[tuple[dict[str, Any], list[Any]]]:
+def _routes(cfg: DictConfig, queue: list[PlannedEpisode], quiet: bool) -> list[tuple[dict[str, Any], list[Any]]]:
     """The run's episodes by the backend that runs them (`dojo.evaluation.routing`), each detour printed."""
     from dojo.evaluation.routing import route
 
@@ -104,14 +94,14 @@ def run_task(cfg: DictConfig) -> int:
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=tasks)
-    queue = _queue(stats, "public")
+    queue = list(stats.episodes)
     hidden = _hidden_seeds(cfg, suite)
     if hidden:
         hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
         count = suite.data["verification"].get("episodes", 10)
         hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
-                                     demo_lengths=demos, tasks=tasks)
-        queue += _queue(hidden_stats, "hidden")
+                                     demo_lengths=demos, tasks=tasks, split="hidden")
+        queue += hidden_stats.episodes
 
     embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
     policy_cfg = OmegaConf.to_container(cfg.policy, resolve=True)
@@ -166,7 +156,7 @@ def run_task(cfg: DictConfig) -> int:
     return 0
 
 
-def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[QueuedEpisode], policy_cfg: dict[str, Any],
+def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[PlannedEpisode], policy_cfg: dict[str, Any],
                      embodiment: str, run_id: str, store: Any, progress: Any, plan_paths: dict[str, str],
                      timeout: float | None, rendering: tuple[Any, tuple[str, ...], tuple[int, int]],
                      recorder_factory: Any) -> int:
@@ -183,7 +173,7 @@ def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[Queue
 
 
 def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,
-                          queue: list[QueuedEpisode], finished: set[tuple[str, int, int]]) -> None:
+                          queue: list[PlannedEpisode], finished: set[tuple[str, int, int]]) -> None:
     """Before a run that renders cameras: which, at what size, and the most it can cost here (camera_budget)."""
     console = Console(stderr=True, soft_wrap=True)  # one line each, whatever the terminal's width
     if warning:

@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+from dojo.compiler.episodes import Episode, PlannedEpisode
 from dojo.compiler.plan import compile_plan, compiler_id, plan_hash
 from dojo.compiler.spec_errors import did_you_mean
 from dojo.compiler.spec_library import Spec, SpecLibrary
@@ -27,18 +28,6 @@ from dojo.compiler.taxonomy import taxonomy_of
 
 SEED_STRIDE = 10_000
 INDEX_FORMAT = "robodojo-plan-index/1"
-
-
-@dataclass(frozen=True)
-class Episode:
-    """One episode of the protocol: which task, setting and scene, under which evaluation seed."""
-
-    task: str
-    dimension: str
-    setting: str
-    scene_seed: int
-    eval_seed: int
-    index: int
 
 
 def suite_episodes(library: SpecLibrary, suite: Spec, *, seeds: list[int] | None = None,
@@ -124,16 +113,6 @@ def compile_plan_files(library: SpecLibrary, todo: Sequence[PlanJob], *, jobs: i
             progress(done, len(todo))
 
 
-@dataclass(frozen=True)
-class PlannedEpisode:
-    """An episode of the protocol with the plan that runs it: what `dojo run` queues, handed over typed rather
-    than written to `index.json` and parsed back (the index stays, for people and other tools)."""
-
-    episode: Episode
-    plan_hash: str
-    plan_path: Path
-
-
 @dataclass
 class CompileStats:
     plans: int
@@ -145,11 +124,12 @@ class CompileStats:
 
 def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1, seeds: list[int] | None = None,
                   episodes: int | None = None, demo_lengths: dict[str, list[int]] | None = None,
-                  tasks: Collection[str] | None = None,
-                  progress: Callable[[int, int], None] | None = None) -> CompileStats:
-    """Compile every episode's plan into `out` (reusing existing ones) and write `out/index.json`.
+                  tasks: Collection[str] | None = None, progress: Callable[[int, int], None] | None = None,
+                  split: str = "public") -> CompileStats:
+    """Compile every episode's plan into `out` (reusing existing ones) and write `out/index.json`; the stats
+    carry the episodes, typed, in protocol order, for the evaluation loop (the index is for people and tools).
     `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons; `tasks` keeps only
-    those of the suite's tasks."""
+    those of the suite's tasks; `split` is the one the episodes are scored in."""
     out.mkdir(parents=True, exist_ok=True)
     entries, planned, todo, queued = [], [], [], set()
     demos = demo_lengths or {}
@@ -159,7 +139,7 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int = 1
         digest = plan_hash(library, task, episode.setting, episode.scene_seed, demos.get(episode.task))
         path = plan_path(out, episode, digest)
         entries.append({**asdict(episode), "hash": digest, "path": str(path.relative_to(out))})
-        planned.append(PlannedEpisode(episode, digest, path))
+        planned.append(PlannedEpisode(**asdict(episode), plan_hash=digest, plan_path=path, split=split))
         if not path.exists() and path not in queued:
             queued.add(path)
             todo.append((task.id, task.package, episode.setting, episode.scene_seed, str(path)))

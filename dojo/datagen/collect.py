@@ -34,7 +34,8 @@ from dojo.backends.mujoco.render import ensure_headless_gl
 from dojo.backends.registry import factory_from_config
 from dojo.compiler.horizon import DEFAULT_HORIZONS, HORIZONS_FORMAT, auto_horizon
 
-from dojo.evaluation.evaluate import QueuedEpisode, run_id_for
+from dojo.compiler.episodes import PlannedEpisode
+from dojo.evaluation.evaluate import run_id_for
 from dojo.evaluation.policy_link import is_privileged
 from dojo.evaluation.recorder import SlotRecorder
 
@@ -65,7 +66,7 @@ class DemoRecorder:
         self.action_mode, self.policy, self.only_success = action_mode, policy, only_success
         self._writer: Any = None
 
-    def start(self, item: QueuedEpisode, plan: Any) -> None:
+    def start(self, item: PlannedEpisode, plan: Any) -> None:
         from dojo.datagen.hdf5_episode import Hdf5EpisodeWriter
 
         self.discard()
@@ -101,7 +102,8 @@ def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: 
     """(plan file, hash) per scene seed, compiling those not yet in `out` (named as the suite compiler names
     them, so a plan is found again by its hash)."""
     from dojo.compiler.plan import plan_hash
-    from dojo.compiler.suite_compile import Episode, compile_plan_files, plan_path
+    from dojo.compiler.episodes import Episode
+    from dojo.compiler.suite_compile import compile_plan_files, plan_path
 
     dimension = task.data["dimension"]
     plans, todo = [], []
@@ -176,7 +178,7 @@ def collect_task(cfg: DictConfig) -> int:
         return DemoRecorder(episodes_dir, tuple(cfg.cameras), depth=bool(cfg.depth), action_mode=meta.action_mode,
                             policy=meta.name, only_success=bool(cfg.only_success))
 
-    queue: list[QueuedEpisode] = []
+    queue: list[PlannedEpisode] = []
     plan_paths: dict[str, str] = {}
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -197,8 +199,9 @@ def collect_task(cfg: DictConfig) -> int:
                 for k, (path, digest) in enumerate(compile_plans(library, task, str(cfg.setting), seeds, plan_dir,
                                                                  int(cfg.jobs)), start):
                     plan_paths[digest] = str(path)
-                    queue.append(QueuedEpisode(path, digest, task.id, task.data["dimension"], str(cfg.setting),
-                                               0, k, int(cfg.seed_offset) + k))
+                    queue.append(PlannedEpisode(task=task.id, dimension=task.data["dimension"],
+                                                setting=str(cfg.setting), scene_seed=int(cfg.seed_offset) + k,
+                                                eval_seed=0, episode=k, plan_hash=digest, plan_path=path))
                 finished = [r for r in store.rows(run_id) if r.episode < len(queue)]  # resumed: counted as done
                 with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                     evaluate(queue, _backend_factory(cfg, meta, plan_paths), policy, store, run_id,

@@ -36,6 +36,7 @@ import numpy as np
 
 from dojo.backends.base import Backend
 from xpolicylab.errors import ErrorCode, ProtocolError
+from dojo.compiler.episodes import PlannedEpisode
 from dojo.compiler.plan import Plan
 
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
@@ -46,24 +47,9 @@ TIMEOUT = "timeout"
 POLICY_ERROR = "policy_error"
 
 
-@dataclass(frozen=True)
-class QueuedEpisode:
-    """One episode to run: its plan file and its place in the protocol."""
-
-    plan_path: Path
-    plan_hash: str
-    task: str
-    dimension: str
-    setting: str
-    eval_seed: int
-    episode: int
-    scene_seed: int
-    split: str = "public"
-
-
 @dataclass
 class _Slot:
-    item: QueuedEpisode
+    item: PlannedEpisode
     plan: Plan
     started: float
     chunk: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
@@ -98,11 +84,11 @@ def run_id_for(identity: dict[str, Any]) -> str:
     return f"{identity.get('suite', 'run')}-{identity.get('policy', 'policy')}-{digest[:12]}"
 
 
-def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
+def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
              store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
              episode_timeout_s: float | None = None,
              recorder_factory: Callable[[], SlotRecorder] | None = None,
-             more: Callable[[int], list[QueuedEpisode]] | None = None) -> int:
+             more: Callable[[int], list[PlannedEpisode]] | None = None) -> int:
     """Run every queued episode not yet in the store for `run_id`; return how many were run now.
 
     `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
@@ -121,7 +107,7 @@ def evaluate(queue: list[QueuedEpisode], backend_factory: Callable[[], Backend],
         num_envs = min(num_envs, backend.max_envs)
     plans: dict[Path, Plan] = {}
 
-    def plan_of(item: QueuedEpisode) -> Plan:
+    def plan_of(item: PlannedEpisode) -> Plan:
         if item.plan_path not in plans:  # each plan file is read once; the backend caches compiled models
             plans[item.plan_path] = Plan.load(item.plan_path)
         return plans[item.plan_path]

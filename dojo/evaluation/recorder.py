@@ -26,7 +26,7 @@ import numpy as np
 if TYPE_CHECKING:
     from dojo.compiler.plan import Plan
 
-    from dojo.evaluation.evaluate import QueuedEpisode
+    from dojo.compiler.episodes import PlannedEpisode
 
 RECORD_MODES = ("none", "head", "all")
 STATE_KEYS = ("joint_pos", "joint_vel", "ee_pose", "gripper")
@@ -35,7 +35,7 @@ STATE_KEYS = ("joint_pos", "joint_vel", "ee_pose", "gripper")
 class SlotRecorder(Protocol):
     """What the evaluation loop calls on the recorder of one slot."""
 
-    def start(self, item: QueuedEpisode, plan: Plan) -> None:
+    def start(self, item: PlannedEpisode, plan: Plan) -> None:
         """A new episode starts in this slot."""
 
     def add(self, obs: dict[str, Any], action: np.ndarray) -> None:
@@ -139,7 +139,7 @@ def tile(images: dict[str, np.ndarray], cameras: Sequence[str]) -> np.ndarray:
     return np.concatenate([images[c] for c in cameras], axis=1)
 
 
-def episode_stem(item: QueuedEpisode) -> str:
+def episode_stem(item: PlannedEpisode) -> str:
     """A file name unique inside a run: task, setting, scene seed, evaluation seed and episode number."""
     return f"{item.task}/{item.setting}-{item.scene_seed}-s{item.eval_seed}-e{item.episode}"
 
@@ -155,14 +155,14 @@ class EpisodeRecorder:
             raise ValueError("EpisodeRecorder needs at least one camera (record=none records nothing)")
         self.out_dir, self.cameras, self.action_mode = out_dir, tuple(cameras), action_mode
         self.relative_to = relative_to
-        self._item: QueuedEpisode | None = None
+        self._item: PlannedEpisode | None = None
         self._plan: Plan | None = None
         self._video: Mp4Writer | None = None
         self._states: dict[str, list[np.ndarray]] = {}
         self._actions: list[np.ndarray] = []
         self._steps: list[int] = []
 
-    def start(self, item: QueuedEpisode, plan: Plan) -> None:
+    def start(self, item: PlannedEpisode, plan: Plan) -> None:
         self.discard()
         self._item, self._plan = item, plan
         self._video = Mp4Writer(self.out_dir / "videos" / f"{episode_stem(item)}.mp4", plan.control_hz)
@@ -202,7 +202,7 @@ class EpisodeRecorder:
         return os.path.relpath(path, self.relative_to) if self.relative_to is not None else str(path)
 
 
-def save_trajectory(path: Path, item: QueuedEpisode, plan: Plan, states: dict[str, list[np.ndarray]],
+def save_trajectory(path: Path, item: PlannedEpisode, plan: Plan, states: dict[str, list[np.ndarray]],
                     actions: list[np.ndarray], steps: list[int], *, action_mode: str, success: bool) -> None:
     """Write the replay file: `actions` [T, D] with `action_mode` and `embodiment` (what XPolicyLab's replay
     policy reads), the states the actions were chosen from, and the episode's identity. Atomic (tmp + rename)."""

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dojo.backends.registry import unsupported_features
-from dojo.evaluation.evaluate import QueuedEpisode
+from dojo.compiler.episodes import PlannedEpisode
 
 FALLBACK = "mujoco"
 """The CPU reference backend, which runs every feature MuJoCo has."""
@@ -42,21 +42,21 @@ class Route:
 
     backend: str
     settings: dict[str, Any]
-    episodes: list[QueuedEpisode] = field(default_factory=list)
+    episodes: list[PlannedEpisode] = field(default_factory=list)
 
 
 class Unroutable(ValueError):
     """A plan requires features that neither the chosen backend nor the fallback can run."""
 
 
-def plan_requires(item: QueuedEpisode) -> tuple[str, ...]:
+def plan_requires(item: PlannedEpisode) -> tuple[str, ...]:
     """The features the episode's plan file lists (`requires`), read without building the plan's model."""
     return tuple(json.loads(item.plan_path.read_text()).get("requires", ()))
 
 
-def route(queue: Sequence[QueuedEpisode], backend: str, settings: Mapping[str, Any], *,
+def route(queue: Sequence[PlannedEpisode], backend: str, settings: Mapping[str, Any], *,
           fallback: str = FALLBACK, fallback_settings: Mapping[str, Any] | None = None,
-          requires: Callable[[QueuedEpisode], Sequence[str]] = plan_requires) -> tuple[list[Route], list[Detour]]:
+          requires: Callable[[PlannedEpisode], Sequence[str]] = plan_requires) -> tuple[list[Route], list[Detour]]:
     """Split `queue` (in its order) between `backend` and `fallback`: the routes that have episodes (the chosen
     backend's first) and the detours taken, one per task."""
     main = Route(backend, dict(settings))

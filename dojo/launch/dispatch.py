@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
 
 if TYPE_CHECKING:
-    from dojo.evaluation.evaluate import QueuedEpisode
+    from dojo.compiler.episodes import PlannedEpisode
 
 
-def episode_key(item: QueuedEpisode) -> EpisodeKey:
+def episode_key(item: PlannedEpisode) -> EpisodeKey:
     """The results store's key of a queued episode."""
     return EpisodeKey(item.plan_hash, item.eval_seed, item.episode)
 
@@ -41,7 +41,7 @@ class Drained:
     queued: int  # of which in the queue, waiting for a worker
 
 
-def longest_first(items: Iterable[QueuedEpisode], horizons: dict[str, int]) -> list[QueuedEpisode]:
+def longest_first(items: Iterable[PlannedEpisode], horizons: dict[str, int]) -> list[PlannedEpisode]:
     """The queue with the episodes of the longest horizons first (in queue order among equals). A run over several
     workers ends when its last episodes do: started last, long episodes leave the other workers idle at the end;
     with the longest first the tail is short ones and the workers finish together. The horizon is an episode's
@@ -52,19 +52,19 @@ def longest_first(items: Iterable[QueuedEpisode], horizons: dict[str, int]) -> l
 class EpisodeDispatcher:
     """A run's queue of episodes, shared by its workers (see the module's docstring)."""
 
-    def __init__(self, items: Iterable[QueuedEpisode]) -> None:
-        self.queue: deque[QueuedEpisode] = deque(items)
-        self.outstanding: dict[int, dict[EpisodeKey, QueuedEpisode]] = {}  # worker -> pulled, not reported
+    def __init__(self, items: Iterable[PlannedEpisode]) -> None:
+        self.queue: deque[PlannedEpisode] = deque(items)
+        self.outstanding: dict[int, dict[EpisodeKey, PlannedEpisode]] = {}  # worker -> pulled, not reported
         self.done: set[EpisodeKey] = set()
         self.dead: set[int] = set()
         self._outbox: list[EpisodeResult] = []
         self._interactions = 0
 
-    def pull(self, worker: int, n: int) -> list[QueuedEpisode]:
+    def pull(self, worker: int, n: int) -> list[PlannedEpisode]:
         """Up to n episodes for `worker`, now outstanding under its name ([] for a worker declared dead)."""
         if worker in self.dead:
             return []
-        taken: list[QueuedEpisode] = []
+        taken: list[PlannedEpisode] = []
         mine = self.outstanding.setdefault(worker, {})
         while self.queue and len(taken) < n:
             item = self.queue.popleft()

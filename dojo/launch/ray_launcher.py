@@ -36,7 +36,8 @@ if TYPE_CHECKING:  # the worker process imports these only once its GL platform 
     from dojo.backends.base import Backend
 
     from dojo.evaluation.episode import EpisodeKey, EpisodeResult
-    from dojo.evaluation.evaluate import ProgressSink, QueuedEpisode, RowSink
+    from dojo.compiler.episodes import PlannedEpisode
+    from dojo.evaluation.evaluate import ProgressSink, RowSink
     from dojo.evaluation.recorder import SlotRecorder
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,7 @@ class WorkerJob:
     recorder_factory: Callable[[], SlotRecorder] | None = None
 
 
-def evaluate_on_ray(queue: list[QueuedEpisode], job: WorkerJob, store: RowSink, progress: ProgressSink,
+def evaluate_on_ray(queue: list[PlannedEpisode], job: WorkerJob, store: RowSink, progress: ProgressSink,
                     options: RayOptions) -> int:
     """Run every queued episode not yet in `store` for the job's run on a Ray cluster; return how many ran.
 
@@ -127,7 +128,7 @@ def start_local_cluster(num_cpus: int | None = None) -> None:
     ray.init(num_cpus=num_cpus, include_dashboard=False, logging_level=logging.WARNING)
 
 
-def _drive(todo: list[QueuedEpisode], job: WorkerJob, store: RowSink, progress: ProgressSink,
+def _drive(todo: list[PlannedEpisode], job: WorkerJob, store: RowSink, progress: ProgressSink,
            options: RayOptions) -> int:
     """The driver's loop: start the dispatcher and the workers, write what they report, re-queue the dead's."""
     import ray
@@ -280,7 +281,7 @@ class _ShardWorker:
         if self._policy is not None:
             self._policy.close()
 
-    def _pull(self, n: int) -> list[QueuedEpisode]:
+    def _pull(self, n: int) -> list[PlannedEpisode]:
         import ray
 
         items = ray.get(self.dispatcher.pull.remote(self.index, n))

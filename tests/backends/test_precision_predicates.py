@@ -90,7 +90,8 @@ def test_struck_compiles_to_the_bar_joints_velocity_and_its_downward_sense(xylop
     model = xylophone_plan.model()
     program = compile_program(xylophone_plan)
     bars = program.layout.success.children
-    assert [b.dof for b in bars] == [int(model.joint(f"xylophone/bar_{k}").dofadr[0]) for k in range(1, 7)]
+    assert [b.dof for b in bars] == list(range(6))  # columns of the gathered speeds, one per bar
+    assert program.index.dof_adr == tuple(int(model.joint(f"xylophone/bar_{k}").dofadr[0]) for k in range(1, 7))
     assert {b.direction for b in bars} == {-1.0} and {b.min_speed for b in bars} == {0.05}
     assert len({b.slot for b in bars}) == 6
 
@@ -100,3 +101,18 @@ def test_struck_names_a_joint_of_the_object(xylophone_plan):
                                                         "stages": []}, compiled_program={})
     with pytest.raises(ProgramError, match="bar_1"):
         compile_program(plan, xylophone_plan.model())
+
+
+def test_joint_speeds_batch_across_models_of_different_sizes():
+    """Two environments of one task whose models differ in size (clutter adds free joints) gather the same speed
+    columns, so their states concatenate into one batch, as the CPU backend's grouped evaluation does."""
+    from dojo.backends.predicate_state import StateIndex, gather_state
+
+    index = StateIndex(frame_kind=(), frame_id=(), qpos_adr=(), geom_atom=(0,), n_atoms=1, dof_adr=(2, 5))
+    states = [gather_state(np, index, np.zeros((1, 0, 3)), np.zeros((1, 1, 3)), np.zeros((1, 1, 9)),
+                           np.zeros((1, 0, 3)), np.zeros((1, 0, 9)), np.zeros((1, nq)), np.zeros((1, 0), int),
+                           np.zeros((1, 0), int), np.zeros((1, 0)), qvel=np.arange(nv, dtype=float)[None])
+              for nq, nv in ((12, 10), (20, 16))]
+    assert [st["qvel"].tolist() for st in states] == [[[2.0, 5.0]], [[2.0, 5.0]]]
+    assert np.concatenate([st["qvel"] for st in states]).shape == (2, 2)
+

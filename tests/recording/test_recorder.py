@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dojo.evaluation.evaluate import QueuedEpisode, _Slot, _with_episode
+from dojo.compiler.episodes import PlannedEpisode
+from dojo.evaluation.evaluate import _Slot, _with_episode
 from dojo.evaluation.recorder import overlay, record_cameras, tile
 from dojo.evaluation.results_store import ResultsStore
 
@@ -42,7 +43,7 @@ def test_overlay_draws_on_a_copy_and_tile_keeps_camera_order() -> None:
 
 
 def test_policy_sees_only_its_own_cameras() -> None:
-    item = QueuedEpisode(Path("p.json"), "h", "t", "precision", "standard", 0, 7, 7)
+    item = PlannedEpisode("t", "precision", "standard", 7, 0, 7, plan_hash="h", plan_path=Path("p.json"))
     obs = {"images": {"head": np.zeros((2, 2, 3))}, "state": {}, "meta": {"episode": 7}}
     slot = _Slot(item, plan=None, started=0.0)  # type: ignore[arg-type]
     assert "images" not in _with_episode(obs, slot, ())

@@ -7,19 +7,19 @@ from pathlib import Path
 import pytest
 
 from dojo.backends.registry import available, unsupported_features
-from dojo.evaluation.evaluate import QueuedEpisode
+from dojo.compiler.episodes import PlannedEpisode
 from dojo.evaluation.routing import Unroutable, route
 
 
-def _episode(task: str, index: int) -> QueuedEpisode:
-    return QueuedEpisode(plan_path=Path(f"/plans/{task}-{index}.json"), plan_hash=f"{task}{index}", task=task,
+def _episode(task: str, index: int) -> PlannedEpisode:
+    return PlannedEpisode(plan_path=Path(f"/plans/{task}-{index}.json"), plan_hash=f"{task}{index}", task=task,
                          dimension="precision", setting="standard", eval_seed=0, episode=index, scene_seed=index)
 
 
 NEEDS = {"stack": ["contact:box-box"], "cloth": ["contact:box-plane", "flex"], "conveyor": ["actors"]}
 
 
-def _requires(item: QueuedEpisode) -> list[str]:
+def _requires(item: PlannedEpisode) -> list[str]:
     return NEEDS[item.task]
 
 
@@ -60,7 +60,7 @@ def test_a_plan_no_backend_can_run_stops_the_run_before_it_starts():
 def test_routing_reads_the_plan_files(tmp_path):
     path = tmp_path / "p.json"
     path.write_text('{"requires": ["flex"], "model_xml": "<mujoco/>"}')
-    item = QueuedEpisode(plan_path=path, plan_hash="h", task="cloth", dimension="precision", setting="standard",
+    item = PlannedEpisode(plan_path=path, plan_hash="h", task="cloth", dimension="precision", setting="standard",
                          eval_seed=0, episode=0, scene_seed=0)
     routes, detours = route([item], "mjx", {})
     assert [r.backend for r in routes] == ["mujoco"] and detours[0].reasons.keys() == {"flex"}

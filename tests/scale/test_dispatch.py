@@ -10,18 +10,18 @@ import pytest
 
 from dojo.launch.dispatch import EpisodeDispatcher, episode_key, longest_first
 from dojo.evaluation.episode import EpisodeResult
-from dojo.evaluation.evaluate import QueuedEpisode
+from dojo.compiler.episodes import PlannedEpisode
 from dojo.launch.ray_launcher import RayOptions, local_plan_paths, worker_count
 from dojo.evaluation.policy_link import policy_config_for
 from dojo.evaluation.run_dir import run_key
 
 
-def item(i: int) -> QueuedEpisode:
-    return QueuedEpisode(plan_path=Path(f"/plans/p{i}.json"), plan_hash=f"p{i}", task="stack_blocks",
+def item(i: int) -> PlannedEpisode:
+    return PlannedEpisode(plan_path=Path(f"/plans/p{i}.json"), plan_hash=f"p{i}", task="stack_blocks",
                          dimension="generalization", setting="standard", eval_seed=0, episode=i, scene_seed=i)
 
 
-def row(q: QueuedEpisode) -> EpisodeResult:
+def row(q: PlannedEpisode) -> EpisodeResult:
     return EpisodeResult(run_id="r", split="public", plan_hash=q.plan_hash, task=q.task, dimension=q.dimension,
                          setting=q.setting, eval_seed=q.eval_seed, episode=q.episode, scene_seed=q.scene_seed,
                          policy_name="zero", success=False, score=0.0, steps=10, wall_time_s=0.1)

@@ -18,7 +18,7 @@ from dojo.language.predicate_registry import PredicateWord, ref_and_number, regi
 @dataclass(frozen=True)
 class Struck:
     dof: int
-    """The joint's velocity address in the model (`state["qvel"]` column)."""
+    """The joint's column in `state["qvel"]` (`StateIndex.dof_adr` holds its velocity address in the model)."""
     direction: float
     """+1 or -1: the sign of a velocity from the rest position towards the far end of the range."""
     min_speed: float
@@ -28,12 +28,12 @@ class Struck:
 
 def compile_struck(ctx, arg, ref, bound) -> Struck:
     name = ref(arg[0])
-    ctx.joint(name)  # checks the name, with the object's joints listed when it is wrong
+    column = ctx.joint_speed(name)  # checks the name, with the object's joints listed when it is wrong
     joint = ctx.model.joint(name)
     lo, hi = (float(v) for v in ctx.model.jnt_range[joint.id])
     rest = min(max(float(ctx.data.qpos[joint.qposadr[0]]), lo), hi)
     direction = -1.0 if abs(lo - rest) >= abs(hi - rest) else 1.0
-    return Struck(int(joint.dofadr[0]), direction, float(arg[1]), ctx.order_slots(1))
+    return Struck(column, direction, float(arg[1]), ctx.order_slots(1))
 
 
 def evaluate_struck(ev, node: Struck):
