@@ -184,11 +184,23 @@ def bench_cpu(cfg: dict[str, Any], num_envs: int, steps: int) -> dict[str, Any]:
            "cpus": os.cpu_count(), "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
            "mujoco": mujoco.__version__, "counts": COUNTS, "substeps_per_interaction": substeps,
            **_cpu_figures(cpu, substeps)}
+    if len(out["tasks"]) > 1:  # each task's scenes alone too, in the same run: a heavy scene (many bodies) shows
+        out["per_task"] = {task: _task_rate([p for p in plans if p.task == task], num_envs, steps)
+                           for task in out["tasks"]}
     if len(out["tasks"]) == 1:  # one scene: the backend's cost over plain mj_step of it, per CPU second
         bare = cpu["raw_mj_step_per_cpu_s"] / substeps
         out["bare_physics"] = {"mj_step_per_cpu_s": cpu["raw_mj_step_per_cpu_s"], "interactions_per_cpu_s": bare}
         out["overhead_over_bare_physics"] = 1.0 - cpu["interactions_per_cpu_s"] / bare
     return out
+
+
+def _task_rate(plans: Sequence[Any], num_envs: int, steps: int) -> dict[str, float]:
+    """Control steps and physics steps per CPU second of one task's plans on the mujoco backend."""
+    from dojo.backends.mujoco.bench import measure_cpu
+
+    rate = measure_cpu(plans, num_envs, steps, resets=1)["interactions_per_cpu_s"]
+    return {"interactions_per_cpu_s": rate,
+            "physics_steps_per_cpu_s": rate * float(np.mean([p.n_substeps for p in plans]))}
 
 
 def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:

@@ -31,7 +31,14 @@ from dojo.compiler.actor_draws import draw_actors
 from dojo.compiler.horizon import task_horizon
 from dojo.compiler.robot_emit import apply_home
 from dojo.compiler.scene_emit import TABLE_ASSET, emit_scene
-from dojo.compiler.scene_sample import STANDARD_LOOK, LayoutError, SceneInstance, sample_scene, setting_config
+from dojo.compiler.scene_sample import (
+    STANDARD_LOOK,
+    LayoutError,
+    SceneInstance,
+    content_names,
+    sample_scene,
+    setting_config,
+)
 from dojo.compiler.plan_features import plan_features
 from dojo.compiler.scene_settle import settle
 from dojo.compiler.spec_errors import SpecError
@@ -172,7 +179,8 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
         model = emitted.world.compile()
         data = mujoco.MjData(model)
         apply_home(model, data, emitted.robot)
-        settled = settle(model, data, {n: h.body for n, h in emitted.objects.items() if h.free_joint})
+        settled = settle(model, data, {n: h.body for n, h in emitted.objects.items() if h.free_joint},
+                         frozenset(content_names(task.data["scene"])))
         if settled.ok:
             break
     else:

@@ -42,6 +42,23 @@ NAMED_COLORS = {
 }
 
 
+CONTENT_GAP = 0.002
+"""Room (m) between objects put inside a container, and between them and its `inside` box (they settle into it)."""
+CONTENT_JITTER = 0.15
+"""Random turn (rad) of each object put inside a container about the container's axis, so scenes differ."""
+
+
+def content_names(scene: dict) -> set[str]:
+    """The names of the objects the compiler puts inside a container (`inside`), `count` expanded."""
+    return {name for entry in scene.get("objects", []) if "inside" in entry for name in instance_names(entry)}
+
+
+def instance_names(entry: dict) -> list[str]:
+    """The names of an object entry's copies: its name, or name_0, name_1, ... with `count`."""
+    count = entry.get("count", 1)
+    return [entry["name"]] if count == 1 else [f"{entry['name']}_{i}" for i in range(count)]
+
+
 class LayoutError(SpecError):
     """The task's objects do not fit their regions (after the bounded number of tries)."""
 
@@ -149,9 +166,7 @@ class _Sampler:
         out = []
         for section, fixed in (("fixtures", True), ("objects", False)):
             for entry in self.scene.get(section, []):
-                count = entry.get("count", 1)
-                names = [entry["name"]] if count == 1 else [f"{entry['name']}_{i}" for i in range(count)]
-                out.extend((entry, name, fixed) for name in names)
+                out.extend((entry, name, fixed) for name in instance_names(entry))
         return out
 
     def make_object(self, entry: dict, name: str, fixed: bool) -> PlacedObject:
@@ -224,7 +239,7 @@ class _Sampler:
                 (o.name, np.array(o.pos[:2]), _radius(o)) for o, e in zip(objects, entries) if "pos" in e]
             failed: list[tuple[PlacedObject, str | None]] = []
             for obj, entry in zip(objects, entries):
-                if "pos" in entry:
+                if "pos" in entry or "inside" in entry:
                     continue
                 region = entry.get("region")
                 support = self.scene["regions"][region].get("on") if region else None
@@ -239,6 +254,7 @@ class _Sampler:
                 if obj.fixed:
                     self.fixtures[obj.name] = obj
             if not failed:
+                self.fill_containers(objects, entries)
                 return
         regions = sorted({r or "table" for _, r in failed})
         names = ", ".join(o.name for o, _ in failed)
@@ -246,6 +262,49 @@ class _Sampler:
             ("scene",), f"could not place {names} in region(s) {', '.join(regions)} without collisions after "
                         f"{ASSET_REDRAWS} draws x {LAYOUT_RESTARTS} layouts x {TRIES_PER_OBJECT} tries (setting {self.setting}, seed "
                         f"{self.seed}): enlarge the region(s) or make the objects fewer or smaller")])
+
+    def fill_containers(self, objects: list[PlacedObject], entries: list[dict]) -> None:
+        """Put the objects of every entry with `inside` into that container (granular contents: balls in a cup):
+        in rings of as many as fit side by side within the container's `inside` placement box, layer upon layer
+        from its bottom, each layer turned by half a place and a random jitter. Raise LayoutError when they do
+        not fit below the box's top."""
+        by_name = {o.name: o for o in objects}
+        contents: dict[str, list[PlacedObject]] = {}
+        for obj, entry in zip(objects, entries):
+            if "inside" in entry:
+                contents.setdefault(entry["inside"], []).append(obj)
+        for container, objs in contents.items():
+            centre, half = self.inside_box(by_name[container])
+            r = max(max(o.half_extents[0], o.half_extents[1], o.half_extents[2]) for o in objs)
+            place = 2.0 * r + CONTENT_GAP
+            ring = max(0.0, float(min(half[0], half[1])) - r - CONTENT_GAP / 2)
+            per_layer = 1 if 2.0 * ring < place else int(math.pi / math.asin(min(1.0, place / (2.0 * ring))))
+            layers = -(-len(objs) // per_layer)
+            if centre[2] - half[2] + CONTENT_GAP + (layers - 1) * place + 2.0 * r > centre[2] + half[2] + 1e-9:
+                raise LayoutError([self.task.problem(("scene",), (
+                    f"{len(objs)} objects ({objs[0].name}, ...) do not fit inside {container}: {per_layer} a layer, "
+                    f"{layers} layers of {place * 100:.1f} cm above its bottom pass the top of its `inside` box"))])
+            for i, obj in enumerate(objs):
+                layer, k = divmod(i, per_layer)
+                turn = 2.0 * math.pi * k / per_layer + (layer * math.pi / per_layer if per_layer > 1 else 0.0)
+                turn += float(self.rng.uniform(-CONTENT_JITTER, CONTENT_JITTER))
+                rho = ring if per_layer > 1 else 0.0
+                z = centre[2] - half[2] + CONTENT_GAP + layer * place + r - obj.half_extents[2]
+                obj.pos = [float(centre[0] + rho * math.cos(turn)), float(centre[1] + rho * math.sin(turn)), float(z)]
+
+    def inside_box(self, container: PlacedObject) -> tuple[np.ndarray, np.ndarray]:
+        """World centre and half extents of a placed container's `inside` placement box (scaled, turned by its
+        yaw: only the centre turns; the half extents are used for the inscribed circle)."""
+        asset = self.library.resolve(self.task, "asset", container.asset)[0]
+        box = next((a for a in asset.data.get("annotations", []) if a["name"] == "inside" and "size" in a), None)
+        if box is None:
+            raise LayoutError([self.task.problem(("scene",), f"objects are put inside {container.name}, whose asset "
+                                                             f"{asset.id} has no `inside` placement box")])
+        yaw = math.radians(container.yaw_deg)
+        x, y, z = (container.scale * float(v) for v in box["pos"])
+        centre = np.array([container.pos[0] + math.cos(yaw) * x - math.sin(yaw) * y,
+                           container.pos[1] + math.sin(yaw) * x + math.cos(yaw) * y, container.pos[2] + z])
+        return centre, container.scale * np.asarray(box["size"], float)
 
     def sample_xy(self, region: str | None, radius: float, placed: list[tuple[np.ndarray, float]],
                   spacing: float) -> np.ndarray | None:

@@ -50,8 +50,11 @@ def task_problems(task: dict) -> list[Problem]:
             if "like" in entry and entry["like"] not in seen - {name}:
                 problems.append((("scene", section, i, "like"), f"'like' names '{entry['like']}', which is not an "
                                  f"object listed before this one{did_you_mean(entry['like'], seen)}", False))
-            if "region" not in entry and "pos" not in entry:
-                problems.append((("scene", section, i), f"object '{name}' needs a region or a pos", False))
+            if "region" not in entry and "pos" not in entry and "inside" not in entry:
+                problems.append((("scene", section, i), f"object '{name}' needs a region, a pos or inside", False))
+            if "inside" in entry and entry["inside"] not in seen - {name}:
+                problems.append((("scene", section, i, "inside"), f"'inside' names '{entry['inside']}', which is not "
+                                 f"an object listed before this one{did_you_mean(entry['inside'], seen)}", False))
     for name, region in scene.get("regions", {}).items():
         if "on" in region and region["on"] not in objects:
             problems.append((("scene", "regions", name, "on"),

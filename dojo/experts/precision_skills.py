@@ -1,5 +1,5 @@
 """Skills of the Precision tasks that the pick-and-place library has no word for: `strike` (a tool's head hits a
-target at a set speed: a mallet on a xylophone bar).
+target at a set speed: a mallet on a xylophone bar) and `pour` (a container's contents tipped into another).
 
 Each is a generator of joint-mode segments like the skills of `dojo.experts.skills`, built from the same
 primitives (grasp, straight TCP lines, measured corrections), and resumed only when the previous segment has
@@ -13,8 +13,16 @@ from typing import Any
 
 import numpy as np
 
-from dojo.experts.motion import CARRY, FAST, Pose
-from dojo.experts.skills import SkillContext, SkillFailed, SkillGen, free_other_arm, grasp
+from dojo.experts.motion import CARRY, FAST, SLOW, Pose
+from dojo.experts.skills import (
+    CLEARANCE,
+    SkillContext,
+    SkillFailed,
+    SkillGen,
+    carry_to,
+    free_other_arm,
+    grasp,
+)
 
 STRIKE_SPEED = 0.25
 """Commanded TCP speed (m/s) of the downward stroke. The arm lags its command, so the head meets the target at
@@ -30,6 +38,23 @@ STRIKE_TILT = 0.3
 grasped off the table hangs with the fingertips level with its head, and they would land on the next bar."""
 AIM_TOL = 0.002
 """A head found farther than this (m) from its aim above the target is moved once more before the stroke."""
+
+
+POUR_ABOVE = 0.045
+"""Height (m) of the held container's mouth above the target's mouth while it pours."""
+POUR_ANGLE = 2.2
+"""How far (rad) the container is tipped about the fingers' axis to empty it (120 degrees: past the horizontal,
+so that round contents roll out over a tapered cup's rim)."""
+POUR_LEAN = 1.3
+"""How far (rad) the container is leant while it is lowered to and raised from its pouring height: short of the
+angle at which round contents roll out, so nothing falls on the way."""
+POUR_DESCENT = 0.04
+"""The leant container travels this much (m) above its pouring height and comes down onto it vertically, so it
+does not sweep the target's rim on the way."""
+POUR_STEPS = 40
+TIP_STEPS = 6
+"""Poses the tip from POUR_LEAN to POUR_ANGLE goes through (each with the mouth at its aim)."""
+"""Control steps the container is held tipped while its contents run out."""
 
 
 def held_arm(ctx: SkillContext, obj: str, arm: str) -> SkillGen:
@@ -76,6 +101,64 @@ def strike(ctx: SkillContext, arm: str, tool: str, target: str, speed: float = S
     yield ctx.line(a, pose, FAST, settle=2)
 
 
+def pour(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
+    """Empty the container `obj` into `target`. Grasp it unless held (a container gripped by its rim turns about
+    the fingers' axis near the middle of its mouth), lift it clear of the table, lean it short of spilling (a
+    leant cup passes over a tall target that an upright one, hanging under the gripper, would hit), bring its
+    mouth (`top` frame) POUR_ABOVE the target's (`opening`, else `top`), tip it by POUR_ANGLE with the mouth
+    held there and hold while the contents run out; then the same way back, and put it down where it stood.
+    Leaning and tipping go the way the arm reaches best at the target."""
+    start = ctx.scene.box(obj).center.copy()
+    a = yield from held_arm(ctx, obj, arm)
+    goal = ctx.scene.site(target, "opening" if ctx.scene.has_site(target, "opening") else "top").center
+    here = ctx.tcp(a)
+    box = ctx.scene.box(obj)
+    local = ctx.actual_tcp_rot(a).T @ (ctx.scene.site(obj, "top").center - ctx.actual_tcp(a))  # mouth, in the hand
+    aim = goal + [0.0, 0.0, POUR_ABOVE]
+    turns = _tip_poses(ctx, a, here.rot, local, aim)
+    leaning, tipped = turns[0], turns[-1]
+    up = Pose(np.array([*here.pos[:2], max(ctx.scene.table_z + float(here.pos[2] - box.bottom) + CLEARANCE,
+                                               here.pos[2])]), here.rot)
+    travel = max(leaning.pos[2], up.pos[2]) + POUR_DESCENT
+    yield ctx.line(a, up, CARRY, settle=0)
+    yield ctx.line(a, Pose(up.pos, leaning.rot), SLOW, settle=4)
+    yield ctx.line(a, Pose(np.array([*up.pos[:2], travel]), leaning.rot), CARRY, settle=0)
+    yield ctx.line(a, Pose(np.array([*leaning.pos[:2], travel]), leaning.rot), CARRY, settle=0)
+    yield ctx.line(a, leaning, SLOW, settle=6)
+    error = aim - ctx.scene.site(obj, "top").center
+    if float(np.linalg.norm(error)) > AIM_TOL:
+        turns = [t.shifted(error) for t in turns]
+        leaning = turns[0]
+        yield ctx.line(a, leaning, SLOW, settle=4)
+    for turn in turns[1:]:  # through the poses between: the mouth stays put while the cup turns about it
+        yield ctx.line(a, turn, SLOW, settle=0)
+    yield ctx.hold(POUR_STEPS)
+    for turn in turns[-2::-1]:
+        yield ctx.line(a, turn, SLOW, settle=0)
+    yield ctx.line(a, Pose(np.array([*leaning.pos[:2], travel]), leaning.rot), SLOW, settle=0)
+    yield ctx.line(a, Pose(np.array([*up.pos[:2], travel]), leaning.rot), CARRY, settle=0)
+    yield ctx.line(a, Pose(up.pos, leaning.rot), CARRY, settle=0)
+    yield ctx.line(a, up, SLOW, settle=2)
+    yield from carry_to(ctx, a, obj, start + [0.0, 0.0, 0.004])
+
+
+def _tip_poses(ctx: SkillContext, arm: int, rot: np.ndarray, mouth: np.ndarray, aim: np.ndarray) -> list[Pose]:
+    """The gripper poses that hold a container's mouth (`mouth`, in the gripper's frame) at `aim`, the gripper
+    turned from `rot` about its finger axis from POUR_LEAN to POUR_ANGLE in TIP_STEPS steps: in the sense (either
+    way round) that the arm reaches with the smaller IK error at both ends."""
+    axis = rot[:, 1] / np.linalg.norm(rot[:, 1])
+    best = None
+    for sense in (1.0, -1.0):
+        poses = []
+        for angle in np.linspace(POUR_LEAN, POUR_ANGLE, TIP_STEPS + 1):
+            turned = _axis_angle(axis, sense * float(angle)) @ rot
+            poses.append(Pose(aim - turned @ mouth, turned))
+        err = max(ctx.planner.ik(ctx._seed(arm, p.pos), arm, p)[1] for p in (poses[0], poses[-1]))
+        if best is None or err < best[0]:
+            best = (err, poses)
+    return best[1]
+
+
 def _dip(here: Pose, head: np.ndarray) -> np.ndarray:
     """The gripper rotation `here.rot` rolled by STRIKE_TILT about its finger axis, in the sense that lowers a
     point `head` (offset from the TCP, world frame)."""
@@ -97,3 +180,7 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
 
 def run_strike(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
     return strike(ctx, step.get("arm", "auto"), step["object"], step["target"])
+
+
+def run_pour(ctx: SkillContext, step: dict[str, Any]) -> SkillGen:
+    return pour(ctx, step.get("arm", "auto"), step["object"], step["target"])

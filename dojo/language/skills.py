@@ -91,6 +91,7 @@ for _name, _description, _run in (
     ("home", "return both arms to their home pose", f"{_EXPERT}:run_home"),
     ("wait", "hold still for `steps` control steps", f"{_EXPERT}:run_wait"),
     ("strike", "hit the target point with the held tool's head, driven down at speed", f"{_PRECISION}:run_strike"),
+    ("pour", "tip the container's contents into the target, its mouth held over the target's", f"{_PRECISION}:run_pour"),
     ("catch", "pick the object off the moving conveyor belt that carries it, fingers open across the belt where it "
               "will pass (then put at the target, if one is given)", "dojo.experts.conveyor_skills:run_catch"),
     ("lift", "raise the object `height` above the table and set it down again where it stood",

@@ -16,6 +16,7 @@ from dojo.backends.predicate_program import (
 )
 from dojo.compiler.plan import compile_plan
 from dojo.compiler.spec_library import SpecLibrary
+from dojo.language.predicates.fraction_inside import FractionInside
 from dojo.language.predicates.ordered import Ordered
 from dojo.language.predicates.struck import Struck
 
@@ -116,3 +117,57 @@ def test_joint_speeds_batch_across_models_of_different_sizes():
     assert [st["qvel"].tolist() for st in states] == [[[2.0, 5.0]], [[2.0, 5.0]]]
     assert np.concatenate([st["qvel"] for st in states]).shape == (2, 2)
 
+
+def frame_state(points: list[list[list[float]]]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """A state of frames only (points[N][F] positions, identity orientations) and params whose last frame is a
+    10 cm box centred on its origin (a container's `inside` box); the others are points."""
+    pos = np.asarray(points, dtype=float)
+    n, f = pos.shape[:2]
+    state = {"pos": pos, "mat": np.broadcast_to(np.eye(3), (n, f, 3, 3)).copy(), "qpos": np.zeros((n, 0)),
+             "qvel": np.zeros((n, 0)), "contact": np.zeros((n, 0, 0), bool)}
+    half = np.zeros((n, f, 3))
+    half[:, -1] = 0.05
+    params = {**{k: np.repeat(v, n, axis=0) for k, v in NO_PARAMS.items()}, "frame_c": np.zeros((n, f, 3)),
+              "frame_h": half, "const_pos": np.zeros((n, f, 3)), "init_center": np.zeros((n, f, 3))}
+    return state, params
+
+
+def fraction(node: FractionInside, points) -> list[bool]:
+    state, params = frame_state(points)
+    lay = layout(node, 0)
+    return program_step(np, lay, state, params, init_memory(np, lay, len(points)), 1)[1].success.tolist()
+
+
+IN, OUT = [0.0, 0.0, 0.02], [0.3, 0.0, 0.02]
+
+
+def test_fraction_inside_counts_the_members_in_the_container():
+    four = (0, 1, 2, 3)
+    envs = [[IN, IN, IN, OUT, [0, 0, 0]], [IN, IN, OUT, OUT, [0, 0, 0]], [OUT, OUT, OUT, OUT, [0, 0, 0]]]
+    assert fraction(FractionInside(four, 4, 0.75), envs) == [True, False, False]
+    assert fraction(FractionInside(four, 4, 0.5), envs) == [True, True, False]
+    assert fraction(FractionInside(four, 4, 1.0), [[IN, IN, IN, IN, [0, 0, 0]]] + envs[:1]) == [True, False]
+
+
+def test_fraction_inside_compares_exactly_at_the_boundary():
+    ten = tuple(range(10))
+    seven_in = [IN] * 7 + [OUT] * 3 + [[0, 0, 0]]
+    assert fraction(FractionInside(ten, 10, 0.7), [seven_in]) == [True]
+    assert fraction(FractionInside(ten, 10, 0.71), [seven_in]) == [False]
+
+
+@pytest.fixture(scope="module")
+def pour_plan():
+    library = SpecLibrary.load([], strict=False)
+    return compile_plan(library, library.get("task", "pour_balls_into_vase"), "standard", 0)
+
+
+def test_fraction_inside_compiles_over_the_group_and_the_containers_inside_box(pour_plan):
+    program = compile_program(pour_plan)
+    node = program.layout.success
+    assert isinstance(node, FractionInside) and len(node.members) == 10 and node.fraction == 0.9
+    assert program.index.frame_kind[node.container] == 1  # the vase's `inside` placement site
+    plan = dataclasses.replace(pour_plan, program={"success": {"fraction_inside": ["marbles", "vase", 0.5]},
+                                                   "stages": []}, compiled_program={})
+    with pytest.raises(ProgramError, match="marbles"):
+        compile_program(plan, pour_plan.model())

@@ -64,8 +64,9 @@ def test_a_rejected_layout_is_redrawn_deterministically(library: SpecLibrary, mo
     original = compile_plan(library, task, "standard", 4)
     assert original.settle["redraws"] == 0
 
-    def first_is_bad(model: mujoco.MjModel, data: mujoco.MjData, free: dict[str, str]) -> SettleResult:
-        result = settle(model, data, free)
+    def first_is_bad(model: mujoco.MjModel, data: mujoco.MjData, free: dict[str, str],
+                     loose: frozenset[str] = frozenset()) -> SettleResult:
+        result = settle(model, data, free, loose)
         calls.append(result)
         return result if len(calls) > 1 else SettleResult(result.seconds, True, {"block_a": "moved 9 cm"})
 
@@ -82,7 +83,8 @@ def test_a_rejected_layout_is_redrawn_deterministically(library: SpecLibrary, mo
 
 def test_a_layout_that_never_settles_fails_naming_the_objects(library: SpecLibrary,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    def never(model: mujoco.MjModel, data: mujoco.MjData, free: dict[str, str]) -> SettleResult:
+    def never(model: mujoco.MjModel, data: mujoco.MjData, free: dict[str, str],
+              loose: frozenset[str] = frozenset()) -> SettleResult:
         return SettleResult(MAX_SECONDS, False, {"block_b": "moved 3.0 cm, turned 45 deg"})
 
     monkeypatch.setattr(plan_module, "settle", never)
