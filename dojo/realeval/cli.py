@@ -79,17 +79,18 @@ def build_session(cfg: Any) -> Any:
         robot_cameras = Plan.load(queue[0].plan_path).cameras
         cameras = tuple(meta.cameras) + tuple(c for c in robot_cameras if c not in meta.cameras)
         width, height, _ = image_size(meta, cfg.width, cfg.height)
-        backend = OmegaConf.to_container(cfg.backend, resolve=True)
+        backend: dict[str, Any] = OmegaConf.to_container(cfg.backend, resolve=True)  # type: ignore[assignment]
         identity = {"suite": suite.id, "policy": meta.name, "policy_config": policy_cfg, "backend": "real",
-                    "driver": backend["driver"], "seeds": seeds, "episodes": cfg.episodes, "tasks": tasks,  # type: ignore[index]
+                    "driver": backend["driver"], "seeds": seeds, "episodes": cfg.episodes, "tasks": tasks,
                     "console": True}
-        out = Path(cfg.out) if cfg.out else Path(os.environ.get("DOJO_OUTPUTS", "outputs")) / suite.id / "console" / meta.name
+        root = Path(os.environ.get("DOJO_OUTPUTS", "outputs"))
+        out = Path(cfg.out) if cfg.out else root / suite.id / "console" / meta.name
         layouts = Path(cfg.layouts) if cfg.layouts else out / "layouts"
         run_id = run_id_for(identity)
         with ResultsStore(out / "results.sqlite") as store:  # the same session again resumes its run
             store.ensure_run(run_id, identity)
-        return ConsoleSession(queue, policy, run_id, out / "results.sqlite", out, backend,  # type: ignore[arg-type]
-                              cameras, (width, height), layouts)
+        return ConsoleSession(queue, policy, run_id, out / "results.sqlite", out, backend, cameras, (width, height),
+                              layouts)
     except BaseException:
         policy.close()
         raise

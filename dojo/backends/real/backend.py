@@ -9,7 +9,8 @@ driver reports it, end-effector poses by forward kinematics of the reported join
 What the robot cannot know is left to the RealEval protocol: success and score are given by the raters
 afterwards (a step reports neither; stage times stay unset), so an episode ends at its horizon, or on a
 non-finite action as in simulation, or by the operator: an e-stop (`END_ESTOP`) or a stop (`request_stop()`,
-`END_OPERATOR_STOP`) ends it at the next step, which commands nothing. `clipped` counts the step's clips and refusals (safety layer and IK goal);
+`END_OPERATOR_STOP`) ends it at the next step, which commands nothing. `clipped` counts the step's clips and
+refusals (safety layer and IK goal);
 the safety layer's own counters (watchdog holds included) are `backend.safety.counters`, reported with every
 step (`StepResult.counters`) so that each trial's row in the results store keeps them.
 

@@ -36,7 +36,8 @@ from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.backends.real.workspace import RobotGeometry
 
 COUNTERS = ("refused_estop", "refused_nonfinite", "refused_jump", "refused_table", "refused_workspace",
-            "refused_arm_collision", "clipped_joint_limit", "clipped_gripper", "clipped_velocity", "clipped_acceleration", "watchdog_holds")
+            "refused_arm_collision", "clipped_joint_limit", "clipped_gripper", "clipped_velocity",
+            "clipped_acceleration", "watchdog_holds")
 SUPERVISOR_HZ = 100.0
 HOME_TOLERANCE = 0.01
 """rad: the return to the reset pose is over when every joint is this close to it."""
