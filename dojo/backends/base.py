@@ -25,6 +25,8 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 
+from dojo.backends import actions as A
+
 Observation = dict[str, Any]
 
 END_SUCCESS = "success"
@@ -105,6 +107,24 @@ class Backend(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def refuse_ended(ids: np.ndarray, slots: Sequence[Any]) -> None:
+    """Stepping a slot whose episode has ended is the caller's mistake (it must reset the slot first): raise
+    `EpisodeDone` naming each such slot and why its episode ended (slots carry `done` and `end_reason`)."""
+    ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
+    if ended:
+        raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
+
+
+def checked_actions(actions: Any, mode: str, n: int, joints_per_arm: int) -> np.ndarray:
+    """`actions` as float64 [n, D] for action `mode` (D from `actions.action_dim`), or a ValueError saying the
+    shape expected: every backend takes the same action rows, and says so the same way."""
+    dim = A.action_dim(mode, joints_per_arm)
+    actions = np.asarray(actions, dtype=np.float64)
+    if actions.shape != (n, dim):
+        raise ValueError(f"actions for mode {mode!r} must have shape ({n}, {dim}), got {actions.shape}")
+    return actions
 
 
 def resolve_ids(env_ids: Sequence[int] | None, num_envs: int) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends import actions as A
-from dojo.backends.base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, EpisodeDone, Observation, StepResult, resolve_ids
+from dojo.backends.base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, Observation, StepResult, checked_actions, refuse_ended, resolve_ids
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
 from dojo.backends.predicate_state import BODY, SITE, StateIndex, gather_state
@@ -325,16 +325,9 @@ class MjxBackend(Backend):
              observe: Sequence[int] | None = None) -> StepResult:
         ids = resolve_ids(env_ids, self.num_envs)
         slots = [self._slots[i] for i in ids]
-        ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
-        if ended:
-            raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
-        if mode not in MODES:
-            raise ValueError(f"unknown action mode {mode!r}; choose one of {MODES}")
-        dim = A.action_dim(mode, self._joints_per_arm)
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (ids.size, dim):
-            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {dim}), got "
-                             f"{actions.shape}")
+        refuse_ended(ids, slots)
+        actions = checked_actions(actions, mode, ids.size, self._joints_per_arm)
+        dim = actions.shape[1]
         bad = A.nonfinite(np, actions)
         rows_a = [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows]
         stepping = [np.zeros(len(r), bool) for r in self._rows]

@@ -31,9 +31,10 @@ from dojo.backends.base import (
     END_SUCCESS,
     END_UNSTABLE,
     Backend,
-    EpisodeDone,
     Observation,
     StepResult,
+    checked_actions,
+    refuse_ended,
     resolve_ids,
 )
 from dojo.backends.predicate_program import CompiledProgram, ProgramLayout, compile_program, init_memory, program_step
@@ -189,16 +190,10 @@ class MujocoBackend(Backend):
              observe: Sequence[int] | None = None) -> StepResult:
         ids = resolve_ids(env_ids, self.num_envs)
         slots = [self._slots[i] for i in ids]
-        ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
-        if ended:
-            raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
-        actions = np.asarray(actions, dtype=np.float64)
+        refuse_ended(ids, slots)
         if not slots:
             return self._result(ids, [], np.zeros(0, np.int32), observe)
-        robot = slots[0].compiled.robot
-        dim = A.action_dim(mode, robot.limits.joints_per_arm)
-        if actions.shape != (ids.size, dim):
-            raise ValueError(f"actions for mode {mode!r} must have shape ({ids.size}, {dim}), got {actions.shape}")
+        actions = checked_actions(actions, mode, ids.size, slots[0].compiled.robot.limits.joints_per_arm)
         bad = A.nonfinite(np, actions)
         ctrl, ee_goal, clipped = self._controls(slots, actions, mode)
 

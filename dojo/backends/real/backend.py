@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from dojo.backends import actions as A
-from dojo.backends.base import END_HORIZON, END_NONFINITE, Backend, EpisodeDone, Observation, StepResult, resolve_ids
+from dojo.backends.base import END_HORIZON, END_NONFINITE, Backend, EpisodeDone, Observation, StepResult, checked_actions, resolve_ids
 from dojo.backends.mujoco.kinematics import ArmKinematics, RobotIndex
 from dojo.backends.real.driver import Driver
 from dojo.backends.real.emulated_cameras import EmulatedCameras
@@ -174,10 +174,7 @@ class RealBackend(Backend):
             self._done, self._end_reason = True, END_ESTOP if self.safety.halted else END_OPERATOR_STOP
             return self._result(ids, [self._observation(observe is None or 0 in set(observe))], 0)
         joints = self._kinematics.index.limits.joints_per_arm
-        dim = A.action_dim(mode, joints)
-        actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (1, dim):
-            raise ValueError(f"actions for mode {mode!r} must have shape (1, {dim}), got {actions.shape}")
+        actions = checked_actions(actions, mode, 1, joints)
         if A.nonfinite(np, actions)[0]:  # the safety layer refuses and counts it; the episode ends, as in sim
             verdict = self.safety.command(np.full((2, joints), np.nan), np.full(2, np.nan))
             self._done, self._end_reason, ik_clips = True, END_NONFINITE, 0
