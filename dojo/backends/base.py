@@ -127,6 +127,22 @@ def checked_actions(actions: Any, mode: str, n: int, joints_per_arm: int) -> np.
     return actions
 
 
+def envelope(plan: Any, step: int, state: dict[str, np.ndarray]) -> Observation:
+    """An observation without images (module docstring): what every backend returns for a slot at `step` of
+    `plan`'s episode, the robot's `state` read its own way. Images and privileged state are added to it."""
+    return {"instruction": plan.instruction, "state": state,
+            "meta": {"task": plan.task, "episode": plan.seed, "step": step, "embodiment": plan.embodiment,
+                     "control_hz": plan.control_hz}}
+
+
+def end_after_step(success: bool, step: int, horizon: int) -> str | None:
+    """The end rule after a control step that was taken and evaluated: success ends the episode, else reaching
+    the horizon does (None: it goes on). Non-finite actions and diverged physics end it before evaluation."""
+    if success:
+        return END_SUCCESS
+    return END_HORIZON if step >= horizon else None
+
+
 def resolve_ids(env_ids: Sequence[int] | None, num_envs: int) -> np.ndarray:
     """`env_ids` as an int array (all slots when None), checked to be distinct and in range."""
     ids = np.arange(num_envs) if env_ids is None else np.asarray(env_ids, dtype=np.int64).reshape(-1)

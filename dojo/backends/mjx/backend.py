@@ -32,7 +32,8 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends import actions as A
-from dojo.backends.base import END_HORIZON, END_NONFINITE, END_SUCCESS, Backend, Observation, StepResult, checked_actions, refuse_ended, resolve_ids
+from dojo.backends.base import (END_NONFINITE, Backend, Observation, StepResult, checked_actions, end_after_step,
+                                envelope, refuse_ended, resolve_ids)
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
 from dojo.backends.predicate_state import BODY, SITE, StateIndex, gather_state
@@ -349,10 +350,8 @@ class MjxBackend(Backend):
             slot.success, slot.score = bool(out["success"]), float(out["score"])
             names = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout.stage_names
             slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(names, out["stage_step"])}
-            if slot.success:
-                slot.done, slot.end_reason = True, END_SUCCESS
-            elif slot.step >= slot.plan.horizon:
-                slot.done, slot.end_reason = True, END_HORIZON
+            slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
+            slot.done = slot.end_reason is not None
         return StepResult(
             env_ids=ids, obs=self._observations(ids, outputs, observe=observe),
             success=np.asarray([s.success for s in slots], bool),
@@ -400,13 +399,8 @@ class MjxBackend(Backend):
     def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
         out = outputs[slot.bucket]
         plan = slot.plan
-        return {
-            "instruction": plan.instruction,
-            "state": {k: np.asarray(out[k][slot.row], np.float32)
-                      for k in ("joint_pos", "joint_vel", "ee_pose", "gripper")},
-            "meta": {"task": plan.task, "episode": plan.seed, "step": slot.step, "embodiment": plan.embodiment,
-                     "control_hz": plan.control_hz},
-        }
+        return envelope(plan, slot.step, {k: np.asarray(out[k][slot.row], np.float32)
+                                          for k in ("joint_pos", "joint_vel", "ee_pose", "gripper")})
 
     def close(self) -> None:
         for renderer in self._renderers:

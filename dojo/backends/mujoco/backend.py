@@ -26,14 +26,14 @@ import numpy as np
 
 from dojo.backends import actions as A
 from dojo.backends.base import (
-    END_HORIZON,
     END_NONFINITE,
-    END_SUCCESS,
     END_UNSTABLE,
     Backend,
     Observation,
     StepResult,
     checked_actions,
+    end_after_step,
+    envelope,
     refuse_ended,
     resolve_ids,
 )
@@ -280,21 +280,14 @@ class MujocoBackend(Backend):
                 if slot.events is not None and slot.compiled.events.fire(slot.events, slot.data, slot.step,
                                                                          out.triggers[k]):
                     mujoco.mj_forward(slot.compiled.model, slot.data)
-                if slot.success:
-                    slot.done, slot.end_reason = True, END_SUCCESS
-                elif slot.step >= slot.plan.horizon:
-                    slot.done, slot.end_reason = True, END_HORIZON
+                slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
+                slot.done = slot.end_reason is not None
 
     # ---- observations and results ----
 
     def _observation(self, slot: _Slot, images: bool = True) -> Observation:
         plan = slot.plan
-        obs: Observation = {
-            "instruction": plan.instruction,
-            "state": slot.compiled.robot.proprioception(slot.data),
-            "meta": {"task": plan.task, "episode": plan.seed, "step": slot.step, "embodiment": plan.embodiment,
-                     "control_hz": plan.control_hz},
-        }
+        obs = envelope(plan, slot.step, slot.compiled.robot.proprioception(slot.data))
         if self.privileged:
             obs["privileged"] = {"qpos": slot.data.qpos.copy(), "qvel": slot.data.qvel.copy(),
                                  "plan_hash": plan.hash, "plan_path": self.plan_paths.get(plan.hash)}

@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from dojo.backends import actions as A
-from dojo.backends.base import END_HORIZON, END_NONFINITE, Backend, EpisodeDone, Observation, StepResult, checked_actions, resolve_ids
+from dojo.backends.base import END_HORIZON, END_NONFINITE, Backend, EpisodeDone, Observation, StepResult, checked_actions, envelope, resolve_ids
 from dojo.backends.mujoco.kinematics import ArmKinematics, RobotIndex
 from dojo.backends.real.driver import Driver
 from dojo.backends.real.emulated_cameras import EmulatedCameras
@@ -226,17 +226,12 @@ class RealBackend(Backend):
         pos, rot, _ = self._kinematics(state.joint_pos)
         quat = self._kinematics.index.ee_quat(rot)
         grip = state.gripper[:, None]
-        obs: Observation = {
-            "instruction": plan.instruction,
-            "state": {
-                "joint_pos": np.concatenate([state.joint_pos, grip], axis=1).ravel().astype(np.float32),
-                "joint_vel": np.concatenate([state.joint_vel, np.zeros_like(grip)], axis=1).ravel().astype(np.float32),
-                "ee_pose": np.concatenate([pos, quat], axis=1).astype(np.float32),
-                "gripper": state.gripper.astype(np.float32),
-            },
-            "meta": {"task": plan.task, "episode": plan.seed, "step": self._step, "embodiment": plan.embodiment,
-                     "control_hz": plan.control_hz},
-        }
+        obs = envelope(plan, self._step, {
+            "joint_pos": np.concatenate([state.joint_pos, grip], axis=1).ravel().astype(np.float32),
+            "joint_vel": np.concatenate([state.joint_vel, np.zeros_like(grip)], axis=1).ravel().astype(np.float32),
+            "ee_pose": np.concatenate([pos, quat], axis=1).astype(np.float32),
+            "gripper": state.gripper.astype(np.float32),
+        })
         if self._cameras is not None and images:
             frames = self._cameras.frames()
             obs["images"] = {c: frames[c] for c in self.camera_names}
