@@ -152,6 +152,10 @@ def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], ob
             if opponent["board"] not in objects:
                 problems.append((("actors", i, "opponent", "board"), f"unknown object '{opponent['board']}'"
                                                                      f"{did_you_mean(opponent['board'], objects)}", False))
+        into = str(actor.get("demonstrator", {}).get("into", "")).split("/", 1)[0]
+        if into and into not in objects:
+            problems.append((("actors", i, "demonstrator", "into"),
+                             f"unknown object '{into}'{did_you_mean(into, objects)}", False))
         shown = actor.get("demonstrator", {}).get("objects", [])
         for k, entry in enumerate(shown):
             for j, name in enumerate(entry if isinstance(entry, list) else [entry]):

@@ -1,4 +1,6 @@
-"""Task validity: the scripted expert (the privileged `oracle`) solves a task, `zero` and `random` do not.
+"""Task validity: the scripted expert (the privileged `oracle`) solves a task, `zero` and `random` do not, and on
+a task that declares what must be remembered (`memory:`) the expert denied that history (`memoryless`,
+`dojo.experts.memoryless`) does no better than chance: the task really needs memory.
 
 DESIGN section 7: every built-in task ships an expert that succeeds on nearly every seed, and a zero policy
 must not succeed. This module compiles (or reuses) the plans of the first N scene seeds of each task (Generalization
@@ -28,6 +30,7 @@ from dojo.compiler.plan import Plan, plan_hash
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_plan_files
 from dojo.compiler.taxonomy import taxonomy_of
+from dojo.experts.memoryless import chance_level
 
 from dojo.evaluation.policy_link import is_privileged
 from dojo.cli.run_cmd import DEFAULT_PLAN_CACHE
@@ -123,13 +126,20 @@ def run_policy(model: Any, paths: Sequence[Path], num_envs: int = 8, threads: in
 
 
 def policies(seed: int = 0) -> dict[str, Any]:
-    """The three policies of the table."""
+    """The policies of the table: the expert, the expert denied the history (`memoryless`, for the tasks that
+    declare one: `dojo.experts.memoryless`), zero and random."""
     from xpolicylab.policies import RandomPolicy, ZeroPolicy
 
+    from dojo.experts.memoryless import MemorylessOracle
     from dojo.experts.oracle import OraclePolicy
 
-    return {"expert": OraclePolicy(), "zero": ZeroPolicy({"chunk_size": 8}),
+    return {"expert": OraclePolicy(), "memoryless": MemorylessOracle(), "zero": ZeroPolicy({"chunk_size": 8}),
             "random": RandomPolicy({"chunk_size": 8, "seed": seed})}
+
+
+def runs(policy: str, task: Any) -> bool:
+    """Whether the table runs `policy` on `task`: the memoryless expert only where the task declares `memory:`."""
+    return policy != "memoryless" or "memory" in task.data
 
 
 def _run_episode(args: tuple[str, str]) -> Outcome:
@@ -158,7 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", nargs="*", help="task ids (default: every built-in evaluated task)")
     parser.add_argument("--seeds", type=int, default=50, help="scene seeds per task")
-    parser.add_argument("--policies", nargs="*", default=["expert", "zero", "random"])
+    parser.add_argument("--policies", nargs="*", default=["expert", "memoryless", "zero", "random"])
     parser.add_argument("--jobs", type=int, default=1,
                         help="processes compiling plans and, above 1, running one episode each at a time")
     parser.add_argument("--num-envs", type=int, default=8, help="episodes at a time with --jobs 1")
@@ -169,11 +179,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     tasks = args.tasks or sorted(s.id for s in library.of_kind("task") if s.data["dimension"] not in training_only)
     files = plan_files(library, tasks, args.seeds, args.cache, jobs=args.jobs)
     table = policies()
-    print("| task | episodes | " + " | ".join(f"{p} success | {p} score" for p in args.policies) + " |")
-    print("|---|---|" + "---|---|" * len(args.policies))
+    print("| task | episodes | " + " | ".join(f"{p} success | {p} score" for p in args.policies) + " | chance |")
+    print("|---|---|" + "---|---|" * len(args.policies) + "---|")
     for task in tasks:
         cells = []
+        spec = library.get("task", task)
         for name in args.policies:
+            if not runs(name, spec):
+                cells.append("- | -")
+                continue
             start = time.monotonic()
             if args.jobs > 1:
                 outcomes = run_episodes(name, files[task], args.jobs)
@@ -184,7 +198,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             cells.append(f"{100 * rate:.0f}% | {score:.1f}")
             print(f"  {task} {name}: {100 * rate:.0f}% ({time.monotonic() - start:.0f} s)"
                   + (f"; failed: {', '.join(failed)}" if failed and rate > 0.5 else ""), flush=True)
-        print(f"| {task} | {len(files[task])} | " + " | ".join(cells) + " |", flush=True)
+        chance = f"{100 * chance_level(library, spec):.1f}%" if "memory" in spec.data else "-"
+        print(f"| {task} | {len(files[task])} | " + " | ".join(cells) + f" | {chance} |", flush=True)
     return 0
 
 

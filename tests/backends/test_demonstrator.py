@@ -57,7 +57,7 @@ def test_same_order_as_holds_only_for_the_demonstrated_order(demo_plan):
     model = plan.model()
     program = compile_program(plan, model)
     partner = {d: d.removeprefix("demo_") for d in _spec(plan)["objects"]}
-    inside = plan.initial_data(model).site_xpos[model.site(plan.objects["basket"]["sites"]["inside"]).id]
+    inside = plan.initial_data(model).site_xpos[model.site(plan.objects["tray"]["sites"]["inside"]).id]
 
     def succeeds(robot_order: list[str]) -> bool:
         data = plan.initial_data(model)
@@ -66,7 +66,7 @@ def test_same_order_as_holds_only_for_the_demonstrated_order(demo_plan):
         out = None
         for step, name in enumerate(robot_order, start=1):
             adr = model.joint(f"{name}/free").qposadr[0]
-            data.qpos[adr:adr + 3] = inside + [0.05 * (step - 3), 0.0, -0.035]  # standing on the basket's floor
+            data.qpos[adr:adr + 3] = inside + [0.05 * (step - 3), 0.0, -0.035]  # standing on the tray's floor
             mujoco.mj_forward(model, data)
             state = mujoco_state(program.index, program.params["const_pos"], data)
             memory, out = program_step(np, program.layout, state, params, memory, step)

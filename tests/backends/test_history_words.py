@@ -74,3 +74,29 @@ def test_facts_resolve_to_the_objects_attributes():
     assert err.value.path == ("success", "all", 1, "pressed", 1)
     with pytest.raises(FactError, match="no object 'deck'"):
         resolve_facts({"attribute": ["deck", "number"]}, objects)
+
+
+def _sequence(qs: list[list[float]]) -> bool:
+    """sequence([q0 >= 1, q1 >= 1]) after the joint states qs[t] = [q0, q1] of steps 1, 2, ..."""
+    from dojo.language.predicates.joint_bound import JointBound
+    from dojo.language.predicates.sequence import Sequence
+
+    node = Sequence((JointBound(0, 1.0, True), JointBound(1, 1.0, True)), 0)
+    lay = ProgramLayout(node, (), (), (), False, (), 4)
+    params = {"frame_c": np.zeros((1, 0, 3)), "frame_h": np.zeros((1, 0, 3)), "const_pos": np.zeros((1, 0, 3)),
+              "init_center": np.zeros((1, 0, 3)), "press_rest": np.zeros((1, 0)), "press_far": np.zeros((1, 0))}
+    memory = init_memory(np, lay, 1)
+    for t, q in enumerate(qs, start=1):
+        state = {"pos": np.zeros((1, 0, 3)), "mat": np.zeros((1, 0, 3, 3)), "qpos": np.array([q], float),
+                 "contact": np.zeros((1, 0, 0), bool)}
+        memory, out = program_step(np, lay, state, params, memory, t)
+    return bool(out.success[0])
+
+
+def test_sequence_needs_each_to_turn_true_after_the_one_before():
+    assert _sequence([[0, 0], [1, 0], [1, 1]])           # the first, then the second
+    assert _sequence([[1, 0], [1, 1]])                   # the first may hold from the start
+    assert _sequence([[1, 0], [0, 0], [0, 1]])           # the first need not hold any more
+    assert not _sequence([[0, 1], [1, 1], [1, 1]])       # the second held before the first: it never turned after
+    assert _sequence([[0, 1], [1, 0], [1, 1]])           # ... unless it turned false and true again after
+    assert not _sequence([[0, 0], [0, 1], [1, 1]])       # the wrong order

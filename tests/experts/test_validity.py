@@ -16,8 +16,10 @@ from dojo.experts.validity import (
     policies,
     run_episodes,
     run_policy,
+    runs,
     summarize,
 )
+from dojo.experts.memoryless import chance_level
 
 TASKS = ["classify_objects", "cover_blocks", "deposit_coin", "general_pickup", "imitate_sorting_sequence",
          "insert_tubes", "match_and_pick_from_conveyor", "pick_from_conveyor_by_image", "play_tic_tac_toe",
@@ -45,15 +47,20 @@ def test_zero_policy_never_succeeds(library, plan_cache):
 @pytest.mark.slow
 @pytest.mark.parametrize("task", TASKS)
 def test_validity_table(library, plan_cache, task):
-    """50 seeds per task: expert >= 95%, zero 0% and low score, random near zero (one episode per process, as
-    `expert_validity --jobs N` runs the README's table)."""
+    """50 seeds per task: expert >= 95%, zero 0% and low score, random near zero, and for a Memory task the expert
+    denied the history at most at chance level, give or take two standard errors of 50 episodes (one episode per
+    process, as `expert_validity --jobs N` runs the README's table)."""
     jobs = max(2, os.cpu_count() or 1)
     files = plan_files(library, [task], 50, plan_cache, jobs=jobs)[task]
-    rates = {name: summarize(run_episodes(name, files, jobs)) for name in policies()}
+    spec = library.get("task", task)
+    rates = {name: summarize(run_episodes(name, files, jobs)) for name in policies() if runs(name, spec)}
     print(f"\n{task}: " + ", ".join(f"{n} {100 * r:.0f}% (score {s:.1f})" for n, (r, s) in rates.items()))
     assert rates["zero"][0] == 0.0 and rates["zero"][1] < 10.0
     assert rates["random"][0] <= 0.04
     assert rates["expert"][0] >= SUCCESS_BAR
+    if "memoryless" in rates:
+        chance = chance_level(library, spec)
+        assert rates["memoryless"][0] <= chance + 2 * (chance * (1 - chance) / len(files)) ** 0.5 + 1 / len(files)
 
 
 def test_episodes_in_processes_score_as_in_one(library, plan_cache):
