@@ -8,6 +8,13 @@ from dojo.backends import predicates as P
 
 from dojo.language.predicate_registry import OBJREF, PredicateWord, register
 
+TOLERANCES = {
+    "pos_tol": {"description": "Position tolerance in metres.", "type": "number", "exclusiveMinimum": 0,
+                "default": 0.02},
+    "yaw_tol": {"description": "Yaw tolerance in degrees.", "type": "number", "exclusiveMinimum": 0, "default": 10},
+}
+"""The tolerances of a planar pose match (this word's and `at_start_of`'s)."""
+
 SCHEMA = {
     "description": "The object's frame matches a target frame within tolerances.",
     "type": "object",
@@ -16,10 +23,7 @@ SCHEMA = {
     "properties": {
         "object": {"description": "Object (or object/frame annotation).", "$ref": OBJREF},
         "target": {"description": "Target object, frame annotation or region.", "$ref": OBJREF},
-        "pos_tol": {"description": "Position tolerance in metres.", "type": "number", "exclusiveMinimum": 0,
-                    "default": 0.02},
-        "yaw_tol": {"description": "Yaw tolerance in degrees.", "type": "number", "exclusiveMinimum": 0,
-                    "default": 10},
+        **TOLERANCES,
     },
 }
 
@@ -32,9 +36,13 @@ class Aligned:
     yaw_tol: float
 
 
+def tolerances(arg: dict) -> tuple[float, float]:
+    """(pos_tol, yaw_tol) of a pose-match argument, defaults filled in."""
+    return tuple(float(arg.get(k, TOLERANCES[k]["default"])) for k in ("pos_tol", "yaw_tol"))
+
+
 def compile_aligned(ctx, arg, ref, bound) -> Aligned:
-    return Aligned(ctx.frame(ref(arg["object"])), ctx.frame(ref(arg["target"])),
-                   float(arg.get("pos_tol", 0.02)), float(arg.get("yaw_tol", 10.0)))
+    return Aligned(ctx.frame(ref(arg["object"])), ctx.frame(ref(arg["target"])), *tolerances(arg))
 
 
 def evaluate_aligned(ev, node: Aligned):

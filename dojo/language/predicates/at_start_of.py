@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from dojo.backends import predicates as P
 
 from dojo.language.predicate_registry import OBJREF, PredicateWord, register
+from dojo.language.predicates.aligned import TOLERANCES, tolerances
 
 SCHEMA = {
     "description": "The object's frame matches the frame `of` had at the start of the episode (reference points "
@@ -20,10 +21,7 @@ SCHEMA = {
     "properties": {
         "object": {"description": "Object (or object/frame annotation).", "$ref": OBJREF},
         "of": {"description": "Object (or object/frame annotation) whose start pose is the target.", "$ref": OBJREF},
-        "pos_tol": {"description": "Position tolerance in metres.", "type": "number", "exclusiveMinimum": 0,
-                    "default": 0.02},
-        "yaw_tol": {"description": "Yaw tolerance in degrees.", "type": "number", "exclusiveMinimum": 0,
-                    "default": 10},
+        **TOLERANCES,
     },
 }
 
@@ -38,8 +36,7 @@ class AtStartOf:
 
 
 def compile_at_start_of(ctx, arg, ref, bound) -> AtStartOf:
-    return AtStartOf(ctx.frame(ref(arg["object"])), ctx.start_pose(ref(arg["of"])),
-                     float(arg.get("pos_tol", 0.02)), float(arg.get("yaw_tol", 10.0)))
+    return AtStartOf(ctx.frame(ref(arg["object"])), ctx.start_pose(ref(arg["of"])), *tolerances(arg))
 
 
 def evaluate_at_start_of(ev, node: AtStartOf):
