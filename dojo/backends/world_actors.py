@@ -16,6 +16,7 @@ import mujoco
 from dojo.backends.conveyor import Conveyor
 from dojo.backends.demonstrator import Demonstrator
 from dojo.backends.opponent import Opponent
+from dojo.backends.world_events import compile_events
 
 
 class Actor(Protocol):
@@ -36,3 +37,16 @@ def compile_actors(plan: Any, model: mujoco.MjModel) -> list[Actor]:
         (name, spec), = actor.items()
         out.append(BUILDERS[name](plan, model, spec))
     return out
+
+
+def first_state(plan: Any, model: mujoco.MjModel) -> mujoco.MjData:
+    """The state a policy sees at an episode's first step: the plan's initial state with the task's events and
+    actors started (an item that enters a belt later is not on it yet), for pictures of the task (`dojo show`)."""
+    data = plan.initial_data(model)
+    events = compile_events(plan, model)
+    if events is not None:
+        events.start(data)
+    for actor in compile_actors(plan, model):
+        actor.start(data)
+    mujoco.mj_forward(model, data)
+    return data

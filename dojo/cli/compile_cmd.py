@@ -38,6 +38,7 @@ def show_task(cfg: DictConfig) -> int:
     import mujoco
 
     from dojo.backends.mujoco.render import render_cameras, render_overview, save_png
+    from dojo.backends.world_actors import first_state
     from dojo.compiler.plan import Plan, compile_plan
     from dojo.compiler.robot_emit import apply_home, build_robot_world
     from dojo.compiler.spec_library import SpecLibrary
@@ -46,12 +47,14 @@ def show_task(cfg: DictConfig) -> int:
     out = Path(cfg.out)
     if cfg.plan is not None:
         plan = Plan.load(Path(cfg.plan))
-        model, data, cameras, label = plan.model(), plan.initial_data(), plan.cameras, f"{plan.task}-{plan.setting}-{plan.seed}"
+        model, cameras, label = plan.model(), plan.cameras, f"{plan.task}-{plan.setting}-{plan.seed}"
+        data = first_state(plan, model)
     elif cfg.task is not None:
         library = SpecLibrary.load([Path(p) for p in cfg.packs])
         task = library.get("task", cfg.task)
         plan = compile_plan(library, task, cfg.setting, int(cfg.seed))
-        model, data, cameras, label = plan.model(), plan.initial_data(), plan.cameras, f"{task.id}-{cfg.setting}-{cfg.seed}"
+        model, cameras, label = plan.model(), plan.cameras, f"{task.id}-{cfg.setting}-{cfg.seed}"
+        data = first_state(plan, model)
         print(f"instruction: {plan.instruction}")
     elif cfg.robot is not None:
         library = SpecLibrary.load([Path(p) for p in cfg.packs])

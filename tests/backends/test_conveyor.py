@@ -93,3 +93,10 @@ def test_like_copies_the_drawn_asset_and_draw_from_varies_it(library):
         assert scene["twin"].asset == scene["cue"].asset and scene["twin"].scale == scene["cue"].scale
         drawn.add(scene["cue"].asset)
     assert drawn == set(pool)
+
+
+def test_the_first_state_shows_only_what_is_there_at_the_first_step(conveyor_plan):
+    from dojo.backends.world_actors import first_state
+
+    data = first_state(conveyor_plan, conveyor_plan.model())
+    assert all(_pos(conveyor_plan, data, n)[0] < PARKED[0] + 2.0 for n in ("first", "cube_a", "cube_b"))  # none yet
