@@ -523,7 +523,8 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
         # the near half is taken (bottles standing in a bin): anywhere over the opening that keeps the object's
         # centre in the placement box, rather than onto what stands there (never across a handle: the carry
         # would sweep into it)
-        spots = [xy for xy in grid(np.maximum(site.half[:2] - 0.01, 0.0), 7) if not overhead or near(xy)]
+        spots = [xy for xy in grid(np.maximum(site.half[:2] - 0.01, 0.0), 7) if not overhead or near(xy)] or grid(
+            np.maximum(site.half[:2] - 0.01, 0.0), 7)  # a container knocked over: no side faces the arm
     xy = min(spots, key=key)
     if room(xy) < 0.0:
         # nowhere a centimetre from the walls clears them and the handle too (an apple beside a basket's
