@@ -533,7 +533,7 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
         # the arm: the first of two objects goes to the end of the strip, leaving room for the second), however
         # close to a wall, since a dropped object falls straight past it
         fine = [xy for xy in grid(np.maximum(site.half[:2] - 0.005, 0.0), 13) if near(xy)]
-        best = min(fine, key=lambda p: key(p, per_metre=1000.0))
+        best = min(fine or [xy], key=lambda p: key(p, per_metre=1000.0))
         if key(best)[0] == key(xy)[0] and room(best) > room(xy) + 0.002:
             xy = best
     return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
