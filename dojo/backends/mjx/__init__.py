@@ -7,6 +7,7 @@
 - `parity`: `parity_report` / `format_table`, agreement with the `mujoco` backend;
 - `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`);
 - `features`: which of a plan's `requires` this backend cannot run, and why;
+- `sharding`: `Placement`, every bucket's batch split over the local devices (one process, several GPUs);
 - `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode).
 """
 
@@ -31,8 +32,9 @@ if _printed.getvalue().strip():
 
 
 def make(options: BackendOptions) -> MjxBackend:
-    """The registry's constructor (`dojo.backends.registry`): setting `impl` (`jax`, `warp`, or auto). Every plan
-    of the run is loaded up front (`preload`), so the run compiles once."""
+    """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto) and `devices`
+    (how many local devices the environments are split over, or `all`). Every plan of the run is loaded up front
+    (`preload`), so the run compiles once."""
     from pathlib import Path
 
     import jax
@@ -48,7 +50,7 @@ def make(options: BackendOptions) -> MjxBackend:
     impl = options.settings.get("impl")
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
-                         height=options.height, depth=options.depth)
+                         height=options.height, depth=options.depth, devices=options.settings.get("devices"))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

@@ -42,6 +42,7 @@ from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
+from dojo.backends.mjx.sharding import Placement, local_devices
 
 log = logging.getLogger(__name__)
 WARP_PENDING = ("predicates read per-environment contacts, which MJX's warp implementation keeps in one pool for "
@@ -221,11 +222,13 @@ class MjxBackend(Backend):
 
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
-                 height: int = 480, depth: bool = False) -> None:
+                 height: int = 480, depth: bool = False, devices: int | str | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
-        model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots."""
+        model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots.
+        `devices`: how many local devices every bucket's environments are split over (`sharding`); all of them by
+        default, so one process uses every GPU of its host."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
@@ -240,6 +243,8 @@ class MjxBackend(Backend):
         self._rows: list[list[int | None]] = []  # per bucket: row -> slot
         self._members: list[np.ndarray] = []
         self._joints_per_arm = 0
+        self.placement = Placement.over(local_devices(devices), self.impl)
+        log.info("mjx backend: environments split over %s", self.placement.describe())
 
     @property
     def num_envs(self) -> int:
@@ -267,7 +272,7 @@ class MjxBackend(Backend):
             self._slots.append(_Slot(plan, k, len(self._rows[k])))
             self._rows[k].append(s)
         for k, bucket in enumerate(self._buckets):
-            capacity = max(len(self._rows[k]), min(len(plans), len(bucket.members)))
+            capacity = self.placement.padded(max(len(self._rows[k]), min(len(plans), len(bucket.members))))
             self._rows[k] += [None] * (capacity - len(self._rows[k]))
         self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
                                     np.int32) for rows in self._rows]
@@ -278,7 +283,8 @@ class MjxBackend(Backend):
         self.close()
         if self.render_config is not None:
             self._renderers = [CpuRenderer([m.model for m in b.members], self.render_config) for b in self._buckets]
-        self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example)
+        self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
+                              placement=self.placement)
         self.reset()
 
     def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
