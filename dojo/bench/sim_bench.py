@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     import jax
 
     from dojo.backends.mjx.bucket import Bucket
+    from dojo.backends.mjx.sharding import Placement
 
 SWING = 0.1
 MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams")
@@ -90,15 +91,17 @@ def _controls(bucket: Bucket, size: int) -> tuple[jax.Array, jax.Array]:
     return jnp.asarray(base + arm), jnp.asarray(base - arm)
 
 
-def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int) -> dict[str, float]:
-    """Build one engine over `buckets`, compile, warm up, and time `steps` ticks."""
+def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
+         placement: Placement | None = None) -> dict[str, Any]:
+    """Build one engine over `buckets` (its batches split over `placement`'s devices), compile, warm up, and time
+    `steps` ticks."""
     import jax
     import jax.numpy as jnp
 
     from dojo.backends.mjx.batch import Engine
 
     start = time.perf_counter()
-    engine = Engine(buckets, sizes, impl)
+    engine = Engine(buckets, sizes, impl, placement=placement)
     members = [jnp.asarray(np.arange(n) % len(b.members), jnp.int32) for b, n in zip(buckets, sizes)]
     ones = [jnp.ones(n, bool) for n in sizes]
     zeros = [jnp.zeros(n, bool) for n in sizes]
@@ -120,7 +123,30 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
     return {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
-            "physics_steps": envs * steps * substeps, "compilations": engine.compilations()}
+            "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
+            "qpos": [np.asarray(d.qpos) for d in engine.data]}
+
+
+def _device_counts(devices: Any) -> list[int]:
+    """`backend.devices` as the sorted device counts to measure: one count, `all`, or a list such as [1,4]."""
+    from dojo.backends.mjx.sharding import local_devices
+
+    listed = devices if isinstance(devices, (list, tuple)) else [devices]
+    return sorted({len(local_devices(n)) for n in listed})
+
+
+def _by_devices(runs: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """The heterogeneous mix per device count, each with its speedup over the fewest devices and how far its final
+    positions are from that run's (0.0: the same physics bit for bit)."""
+    first = min(runs)
+    base = _rates([runs[first]])["interactions_per_s"]
+    out = {}
+    for n, run in sorted(runs.items()):
+        rates = _rates([run])
+        diff = max(float(np.max(np.abs(a - b), initial=0.0)) for a, b in zip(run["qpos"], runs[first]["qpos"]))
+        out[str(n)] = {**rates, f"speedup_over_{first}": rates["interactions_per_s"] / base,
+                       f"max_qpos_difference_from_{first}": diff}
+    return out
 
 
 def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
@@ -157,9 +183,11 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
 
     cfg keys: `num_envs` (total batch), `steps` (timed control steps), `warmup` (untimed ticks after the
     compiling one, default 3), `tasks` (ids; empty = all), `plans` (folder of compiled plans; else `episodes`
-    plans per task are compiled), `episodes`, `backend: {name, impl}` (name `mjx` or `mujoco`; impl `auto`, `jax`
-    or `warp`), `modes` (subset of heterogeneous, homogeneous, cpu; backend=mujoco is `cpu` alone), `cpu_envs`,
-    `cpu_steps` (the size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
+    plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
+    `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
+    mix in this one run and reported under `by_devices`, batches padded for the most devices), `modes` (subset of
+    heterogeneous, homogeneous, cpu; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU
+    baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -214,6 +242,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+    from dojo.backends.mjx.sharding import Placement, local_devices
 
     if "streams" in modes:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
@@ -228,19 +257,26 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     plans = load_plans(cfg)
     buckets = make_buckets(plans)
     log.info("%d plans in %d buckets (%.1f s)", len(plans), len(buckets), time.perf_counter() - start)
-    sizes = split_batch(buckets, int(cfg.get("num_envs", len(buckets))))
+    counts = _device_counts(backend.get("devices"))
+    placements = {n: Placement.over(local_devices(n), impl) for n in counts}
+    widest = placements[counts[-1]]
+    sizes = [widest.padded(n) for n in split_batch(buckets, int(cfg.get("num_envs", len(buckets))))]
     out: dict[str, Any] = {
         "what": "sim", "backend": "mjx", "impl": impl, "num_envs": sum(sizes), "steps": steps,
         "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "buckets": len(buckets),
         "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
     }
+    out["devices"] = widest.count
     if "heterogeneous" in modes:
-        out["heterogeneous"] = _rates([_run(buckets, sizes, impl, steps, warmup)])
+        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n]) for n in counts}
+        out["heterogeneous"] = _rates([runs[counts[-1]]])
+        if len(counts) > 1:
+            out["by_devices"] = _by_devices(runs)
         peak = _peak_memory()
         out["peak_device_bytes_per_env"] = None if peak is None else peak / sum(sizes)
     if "homogeneous" in modes:
-        out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup) for b, n in zip(buckets, sizes)])
+        out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup, widest) for b, n in zip(buckets, sizes)])
     if "streams" in modes:
         from dojo.backends.mjx.streams import measure_streams
 

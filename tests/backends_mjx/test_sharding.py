@@ -127,3 +127,18 @@ def test_dojo_run_on_four_devices_records_what_one_device_records(tmp_path: Path
             rows[n] = {r.key: (r.success, r.score, r.steps, r.stage_times) for r in results.rows()}
     assert len(rows[1]) == 2 and any(success for success, *_ in rows[1].values())
     assert rows[DEVICES] == rows[1]
+
+
+def test_bench_reports_each_device_count_with_its_speedup_and_drift() -> None:
+    from dojo.bench.sim_bench import _by_devices, _device_counts
+
+    assert _device_counts("all") == _device_counts(None) == [1] and _device_counts([1, "all"]) == [1]
+    qpos = np.zeros((8, 3), np.float32)
+    runs = {1: {"seconds": 2.0, "setup_s": 5.0, "interactions": 80, "physics_steps": 800, "compilations": 1,
+                "qpos": [qpos]},
+            4: {"seconds": 1.0, "setup_s": 6.0, "interactions": 80, "physics_steps": 800, "compilations": 1,
+                "qpos": [qpos + np.float32(1e-6)]}}
+    out = _by_devices(runs)
+    assert out["1"]["speedup_over_1"] == 1.0 and out["4"]["speedup_over_1"] == 2.0
+    assert out["1"]["max_qpos_difference_from_1"] == 0.0
+    assert out["4"]["max_qpos_difference_from_1"] == pytest.approx(1e-6, rel=1e-3)
