@@ -52,6 +52,8 @@ POUR_DESCENT = 0.04
 """The leant container travels this much (m) above its pouring height and comes down onto it vertically, so it
 does not sweep the target's rim on the way."""
 POUR_STEPS = 40
+POUR_TRIES = 2
+"""Tips in all: one more when something is still inside after the first (a ball caught behind the fingers)."""
 TIP_STEPS = 6
 """Poses the tip from POUR_LEAN to POUR_ANGLE goes through (each with the mouth at its aim)."""
 """Control steps the container is held tipped while its contents run out."""
@@ -130,16 +132,26 @@ def pour(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
         turns = [t.shifted(error) for t in turns]
         leaning = turns[0]
         yield ctx.line(a, leaning, SLOW, settle=4)
-    for turn in turns[1:]:  # through the poses between: the mouth stays put while the cup turns about it
-        yield ctx.line(a, turn, SLOW, settle=0)
-    yield ctx.hold(POUR_STEPS)
-    for turn in turns[-2::-1]:
-        yield ctx.line(a, turn, SLOW, settle=0)
+    for _ in range(POUR_TRIES):  # tipped again while anything is left inside
+        for turn in turns[1:]:  # through the poses between: the mouth stays put while the cup turns about it
+            yield ctx.line(a, turn, SLOW, settle=0)
+        yield ctx.hold(POUR_STEPS)
+        for turn in turns[-2::-1]:
+            yield ctx.line(a, turn, SLOW, settle=0)
+        if not _contents(ctx, obj):
+            break
     yield ctx.line(a, Pose(np.array([*leaning.pos[:2], travel]), leaning.rot), SLOW, settle=0)
     yield ctx.line(a, Pose(np.array([*up.pos[:2], travel]), leaning.rot), CARRY, settle=0)
     yield ctx.line(a, Pose(up.pos, leaning.rot), CARRY, settle=0)
     yield ctx.line(a, up, SLOW, settle=2)
     yield from carry_to(ctx, a, obj, start + [0.0, 0.0, 0.004])
+
+
+def _contents(ctx: SkillContext, container: str) -> list[str]:
+    """The objects whose centre is within the container's `inside` box (what is still to pour)."""
+    box = ctx.scene.site(container, "inside")
+    return [name for name in ctx.scene.others((container,))
+            if np.all(np.abs(box.rot.T @ (ctx.scene.box(name).center - box.center)) <= box.half + 0.005)]
 
 
 def _tip_poses(ctx: SkillContext, arm: int, rot: np.ndarray, mouth: np.ndarray, aim: np.ndarray) -> list[Pose]:
