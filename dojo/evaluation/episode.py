@@ -57,7 +57,7 @@ class EpisodeResult:
     video_path: str | None = None
     success_terms: dict[str, bool] = field(default_factory=dict)
     """Each condition of the task's success predicate at the episode's end (which one failed), when the backend
-    says (the `mujoco` backend does)."""
+    says (the `mujoco` and `mjx` backends do)."""
     counters: dict[str, int] = field(default_factory=dict)
     """The backend's own counts over the episode, when it keeps any (the `real` backend: every command its safety
     layer clipped or refused, by kind, and its watchdog's holds), so that a trial's record says how it was run."""

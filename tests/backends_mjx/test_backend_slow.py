@@ -37,6 +37,7 @@ def test_backend_matches_cpu_and_refills_without_recompiling(plans):
         np.testing.assert_allclose(a.obs[0]["state"]["ee_pose"], b.obs[0]["state"]["ee_pose"], atol=1e-4)
         assert a.steps.tolist() == b.steps.tolist() == [5, 5]
         assert a.success.tolist() == b.success.tolist()
+        assert a.terms == b.terms and a.terms[0]  # each success condition, named, as the CPU backend says it
         assert np.abs(mjx_backend.qpos() - np.stack([s.data.qpos for s in cpu._slots])).max() < 1e-2
     mjx_backend.reset([1], [plans[0]])
     assert mjx_backend.step(hold[:1], [1]).steps.tolist() == [1]

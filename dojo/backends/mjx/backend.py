@@ -142,7 +142,7 @@ class _DeviceHooks(Hooks):
         memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
                               new_memory, memory)
         return memory, {"success": out.success, "score": out.score, "stage_step": out.stage_step,
-                        "clipped": clipped, **_proprioception(robot, data)}
+                        "terms": out.terms, "clipped": clipped, **_proprioception(robot, data)}
 
 
 def _ee_in_base(robot: RobotIndex, d: Tree) -> tuple[jax.Array, jax.Array]:
@@ -212,6 +212,7 @@ class _Slot:
     success: bool = False
     score: float = 0.0
     stage_times: dict[str, int | None] = field(default_factory=dict)
+    terms: dict[str, bool] = field(default_factory=dict)
     clipped_total: int = 0
 
 
@@ -354,8 +355,9 @@ class MjxBackend(Backend):
             clipped[k] = int(out["clipped"])
             slot.clipped_total += clipped[k]
             slot.success, slot.score = bool(out["success"]), float(out["score"])
-            names = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout.stage_names
-            slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(names, out["stage_step"])}
+            layout = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout
+            slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(layout.stage_names, out["stage_step"])}
+            slot.terms = dict(zip(layout.term_names, map(bool, out["terms"])))
             slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
             slot.done = slot.end_reason is not None
         return StepResult(
@@ -364,7 +366,8 @@ class MjxBackend(Backend):
             score=np.asarray([s.score for s in slots], np.float32),
             done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
             stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
-            clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32))
+            clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32),
+            terms=[dict(s.terms) for s in slots])
 
     def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
                       observe: Sequence[int] | None = None) -> list[Observation]:
