@@ -160,8 +160,8 @@ def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[Plann
                      embodiment: str, run_id: str, store: Any, progress: Any, plan_paths: dict[str, str],
                      timeout: float | None, rendering: tuple[Any, tuple[str, ...], tuple[int, int]],
                      recorder_factory: Any) -> int:
-    """`launcher=ray`: the episodes over the workers of a Ray cluster (launch_ray), each building `backend` as
-    this process would (with its own share of threads) and opening its own policy link."""
+    """`launcher=ray`: the episodes over the workers of a Ray cluster (dojo.launch.ray_launcher), each building
+    `backend` as this process would (with its own share of threads) and opening its own policy link."""
     from dojo.launch.ray_launcher import RayOptions, WorkerJob, evaluate_on_ray
 
     options = RayOptions.of(OmegaConf.to_container(cfg.launcher, resolve=True), str(backend["name"]))

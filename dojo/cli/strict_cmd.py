@@ -1,7 +1,7 @@
 """`dojo validate --strict PACK...`: prove a contributed task pack sound before it is merged.
 
 Every task of every pack is checked in order (schema, safety, asset, determinism, stability, solvability,
-not_trivial, horizon; `strict_checks`), stopping a task at its first failure and never the pack. The report is a
+not_trivial, horizon; `dojo.strict.checks`), stopping a task at its first failure and never the pack. The report is a
 table on the terminal, or JSON (`--format json`), and optionally JUnit XML (`--junit FILE`) for the contributor's
 CI. Exit codes: 0 every task passed every check (warnings allowed), 1 some check failed, 2 the command was
 misused (a path that does not exist, a bad flag).

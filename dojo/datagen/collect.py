@@ -4,8 +4,8 @@ A demonstrator policy (the scripted `oracle`, or any policy the config names) ru
 same evaluation loop as `dojo run` (continuous batching, a durable row per episode), with a recorder per slot
 that streams every step into an HDF5 episode: RGB(-D) of the configured cameras at the configured resolution,
 joint states, end-effector poses, grippers, the action executed (next-step action), instruction, scene seed and
-plan hash (`dataset_hdf5`). When all are in, the LeRobot v3.0 dataset is built from those files
-(`dataset_lerobot`), and the task's demo lengths and auto horizon are merged into the horizons file that
+plan hash (`hdf5_episode`). When all are in, the LeRobot v3.0 dataset is built from those files
+(`lerobot_dataset`), and the task's demo lengths and auto horizon are merged into the horizons file that
 `dojo compile` and `dojo run` read (`datasets/horizons.json` by default).
 
 Any task with training data can be collected: the five scored dimensions except Open (evaluation only), and the

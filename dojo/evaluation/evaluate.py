@@ -13,8 +13,8 @@ interrupted run loses at most the episodes that were still in flight; those are 
 
 Launchers: the loop does not care where its episodes come from or where its rows go. `store` is anything with
 `finished()` and `add_many()` and `progress` anything with `episode_finished()` and `interactions()`, and with
-`more` the loop pulls further episodes as its slots free up, so that a Ray worker (`launch_ray`) runs this same
-loop on episodes it pulls from the driver and streams its rows back, instead of a copy of it.
+`more` the loop pulls further episodes as its slots free up, so that a Ray worker (`dojo.launch.ray_launcher`)
+runs this same loop on episodes it pulls from the driver and streams its rows back, instead of a copy of it.
 
 Recording (optional): with a `recorder_factory`, every slot gets a recorder that sees each observation and the
 action taken from it, and whose video path goes into the episode's row. The backend may then render cameras the

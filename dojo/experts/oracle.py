@@ -8,7 +8,7 @@ built-in task must be solvable: DESIGN section 7), demonstrations and data colle
 Served like any policy: `dojo run policy=oracle`, or `dojo policy serve policy=dojo.experts.oracle:OraclePolicy`
 on the machine that holds the plan files (it reads the plan file the observation names). It acts in the joint
 mode: per environment it keeps one scripted expert (a state machine over the task's `expert:` skills, see
-`expert_skills`) and its own MjData of the plan's model, set to the observed qpos before each decision.
+`dojo.experts.skills`) and its own MjData of the plan's model, set to the observed qpos before each decision.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ collision-aware in the simple, robust way scripted demonstrations use: approach 
 close, lift clear, transfer above everything in the way, lower, release, back off along the approach;
 orientations tilt forward only when a top-down gripper cannot reach (far baskets, high drops). A place that did
 not land is tried again, a push is measured and corrected. `open`/`close` (drawers, doors, lids: articulated
-fixtures moved by a handle) live in `expert_articulated`.
+fixtures moved by a handle) live in `dojo.experts.articulated`.
 """
 
 from __future__ import annotations

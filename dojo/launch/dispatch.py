@@ -10,7 +10,7 @@ Exactly once: a key (plan hash, eval seed, episode) is accepted the first time i
 that, whoever reports it (a worker declared dead whose last report was still on its way, say); a key reported
 while it waits in the queue again is taken out of it. The results store's unique key is the second guard.
 
-This is plain Python, so that its bookkeeping is tested without a cluster; `launch_ray` runs it as a Ray actor.
+This is plain Python, so that its bookkeeping is tested without a cluster; `ray_launcher` runs it as a Ray actor.
 """
 
 from __future__ import annotations

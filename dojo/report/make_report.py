@@ -3,7 +3,7 @@
 Several runs make a leaderboard: rows are grouped into entries by policy name, each entry is scored with
 `scoring.score_episodes` (public rows) and checked with `verification.verify` (public vs hidden rows).
 
-The page itself is rendered by `report_html` (charts by `report_svg`). Hidden verification layouts stay
+The page itself is rendered by `html_page` (charts by `svg_charts`). Hidden verification layouts stay
 private: the JSON and the page give only the hidden split's aggregate counts, never its plan hashes, videos
 or per-episode data, so a report can be published without revealing the private seed set.
 """

@@ -49,7 +49,7 @@ def test_zero_policy_never_succeeds(library, plan_cache):
 def test_validity_table(library, plan_cache, task):
     """50 seeds per task: expert >= 95%, zero 0% and low score, random near zero, and for a Memory task the expert
     denied the history at most at chance level, give or take two standard errors of 50 episodes (one episode per
-    process, as `expert_validity --jobs N` runs the README's table)."""
+    process, as `python -m dojo.experts.validity --jobs N` runs the README's table)."""
     jobs = max(2, os.cpu_count() or 1)
     files = plan_files(library, [task], 50, plan_cache, jobs=jobs)[task]
     spec = library.get("task", task)
