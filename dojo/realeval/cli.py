@@ -3,13 +3,18 @@
 Examples:
     dojo console suite=robodojo_real_piper policy.url=ws://HOST:PORT [token=...] [port=8787]
     dojo console scores outputs/robodojo_real_piper/console/my_policy/results.sqlite
+    dojo console add-rater alice [raters=PATH]      (prints alice's token once)
+    dojo console remove-rater alice [raters=PATH]
     dojo console suite=robodojo_real_piper policy=zero backend.driver=piper backend.can=[can_left,can_right]
 
 Arguments are `key=value` (dotted keys, lists in brackets), as for `dojo run`. The trials go into the results
 store `<out>/results.sqlite` (default out: `outputs/<suite>/console/<policy>`), their videos beside it, the
-reference layouts under `layouts` (default `<out>/layouts`). The token guards every page; it is `token=`, else
-`$DOJO_CONSOLE_TOKEN`, else a new one printed once. The console listens on 127.0.0.1 unless `host=` says
-otherwise: it commands a robot, so put it on a network only behind your lab's own access control.
+reference layouts under `layouts` (default `<out>/layouts`). The operator's token guards every page; it is
+`token=`, else `$DOJO_CONSOLE_TOKEN`, else a new one printed once. Raters log in with their own tokens, which
+open only the rater pages: `add-rater` issues one and keeps its hash in the raters file (`raters=`, default
+`<results root>/console/raters.json`), which the running console reads again when it changes. The console
+listens on 127.0.0.1 unless `host=` says otherwise: it commands a robot, so put it on a network only behind
+your lab's own access control.
 
 `dojo console scores STORE` prints the raters' verdicts by policy and task: the one place policies are named.
 """
@@ -30,6 +35,7 @@ DEFAULTS: dict[str, Any] = {
     "suite": None, "packs": [], "tasks": None, "episodes": None, "seeds": None, "plans": None,
     "policy": {"name": "zero"}, "backend": {"name": "real", "driver": "emulator", "can": None, "emulator": {}},
     "width": None, "height": None, "host": "127.0.0.1", "port": 8787, "token": None, "out": None, "layouts": None,
+    "raters": None,
 }
 
 
@@ -98,25 +104,50 @@ def build_session(cfg: Any) -> Any:
 
 def console_main(argv: list[str]) -> int:
     """`dojo console key=value ...`: build the session and serve it until interrupted; `dojo console scores
-    STORE`: the raters' verdicts."""
+    STORE`: the raters' verdicts; `add-rater` / `remove-rater NAME`: the raters' tokens."""
     if argv[:1] == ["scores"]:
         return _print_scores(argv[1:])
+    if argv[:1] in (["add-rater"], ["remove-rater"]):
+        return _manage_rater(argv[0], argv[1:])
     import uvicorn
 
     from dojo.realeval.app import create_app
+    from dojo.realeval.raters import RaterRegistry, default_raters_file
 
     cfg = console_config(argv)
     token = cfg.token or os.environ.get("DOJO_CONSOLE_TOKEN")
     if not token:
         token = secrets.token_urlsafe(18)
         print(f"console token (give it to the operators): {token}", flush=True)
+    raters = RaterRegistry(Path(cfg.raters) if cfg.raters else default_raters_file())
+    if not raters.names():
+        print(f"no raters in {raters.path} yet: `dojo console add-rater NAME` issues a rater's token", flush=True)
     session = build_session(cfg)
     try:
         print(f"RealEval console: http://{cfg.host}:{cfg.port}/  ({len(session.trials)} trials; results "
-              f"{session.store_path})", flush=True)
-        uvicorn.run(create_app(session, str(token)), host=str(cfg.host), port=int(cfg.port), log_level="warning")
+              f"{session.store_path}; raters {raters.path})", flush=True)
+        uvicorn.run(create_app(session, str(token), raters), host=str(cfg.host), port=int(cfg.port),
+                    log_level="warning")
     finally:
         session.close()
+    return 0
+
+
+def _manage_rater(action: str, argv: list[str]) -> int:
+    """`add-rater NAME [raters=PATH]` prints the new token once; `remove-rater NAME [raters=PATH]` revokes it."""
+    from dojo.realeval.raters import RaterRegistry, default_raters_file
+
+    names = [a for a in argv if "=" not in a]
+    options = dict(a.split("=", 1) for a in argv if "=" in a)
+    if len(names) != 1 or set(options) - {"raters"}:
+        raise ValueError(f"usage: dojo console {action} NAME [raters=PATH]")
+    raters = RaterRegistry(Path(options["raters"]) if "raters" in options else default_raters_file())
+    if action == "add-rater":
+        token = raters.add(names[0])
+        print(f"rater {names[0]}'s token (shown once; give it to them): {token}")
+    else:
+        raters.remove(names[0])
+        print(f"rater {names[0]} removed from {raters.path}")
     return 0
 
 

@@ -1,10 +1,11 @@
-"""The console's three pages (plain HTML and script, no build step, nothing fetched from elsewhere).
+"""The console's pages (plain HTML and script, no build step, nothing fetched from elsewhere).
 
 The operator's page: the trial queue; a live view per camera with the trial's reference layout overlaid (an
 opacity slider, and the alignment figure: how closely the live view matches it, 100 = exactly); Reset scene,
 Record layout, Start, Stop and E-stop (the button, or the Escape key anywhere on the page); the safety state
-and counters, live over the WebSocket. The rater's page: one trial's video and its task's rubric, scored by a
-rater id. Neither page, nor anything they load, names the policy.
+and counters, live over the WebSocket. The raters' pages: the trials that have run, by blind code, and one
+trial's video and its task's rubric, scored under the name the rater's token was issued to. No page, nor
+anything they load, names the policy.
 """
 
 LOGIN_PAGE = """<!doctype html>
@@ -14,6 +15,14 @@ LOGIN_PAGE = """<!doctype html>
 <p>This console needs its token (printed by <code>dojo console</code> when it started).</p>
 <form method="post" action="/login"><input name="token" type="password" id="token" placeholder="token" autofocus>
 <button type="submit" id="login">Log in</button></form>
+</body></html>
+"""
+
+FORBIDDEN_PAGE = """<!doctype html>
+<html><head><meta charset="utf-8"><title>RealEval console: not for raters</title></head>
+<body style="font-family: sans-serif; margin: 3em">
+<h1>403: not for raters</h1>
+<p>A rater's token opens only the rater pages: <a href="/rate">the trials to rate</a>.</p>
 </body></html>
 """
 
@@ -42,7 +51,7 @@ alignment <span id="alignment">-</span></p>
 <h2>Safety counters (this trial)</h2><table id="counters"></table>
 <h2>Trials</h2>
 <table id="trials"><thead><tr><th>trial</th><th>task</th><th>#</th><th>status</th><th>ended</th>
-<th>steps</th><th>video</th><th>score</th></tr></thead><tbody></tbody></table>
+<th>steps</th><th>video</th></tr></thead><tbody></tbody></table>
 <script>
 const cameras = new Set(); let current = null; let trials = [];
 const $ = (id) => document.getElementById(id);
@@ -62,7 +71,6 @@ async function refreshTrials() {
     if (current && current.code === t.code) row.className = 'current';
     for (const v of [t.code, t.task, t.trial, t.status, t.end_reason || '', t.steps]) row.insertCell().textContent = v;
     row.insertCell().innerHTML = t.video ? `<a class="video" href="/video/${t.code}.mp4">video</a>` : '';
-    row.insertCell().innerHTML = t.status === 'done' ? `<a class="rate" href="/rate/${t.code}">rate</a>` : '';
   }
 }
 function ensureView(camera) {
@@ -110,15 +118,37 @@ setInterval(refreshTrials, 1000); setInterval(refreshViews, 300); setInterval(re
 </body></html>
 """
 
+RATERS_PAGE = """<!doctype html>
+<html><head><meta charset="utf-8"><title>RealEval: trials to rate</title>
+<style>body { font-family: sans-serif; margin: 1em; } td, th { border: 1px solid #ccc; padding: 2px 8px; }
+table { border-collapse: collapse; }</style></head>
+<body>
+<h1>Trials to rate</h1>
+<p>Rating as <b id="rater"></b></p>
+<table id="trials"><thead><tr><th>trial</th><th>task</th><th>your rating</th></tr></thead><tbody></tbody></table>
+<script>
+fetch('/api/rater/trials').then(r => r.json()).then(r => {
+  document.getElementById('rater').textContent = r.rater;
+  const body = document.querySelector('#trials tbody');
+  for (const t of r.trials) {
+    const row = body.insertRow(); row.id = 'trial-' + t.code;
+    row.insertCell().innerHTML = `<a class="rate" href="/rate/${t.code}">${t.code}</a>`;
+    row.insertCell().textContent = t.task; row.insertCell().textContent = t.rated ? 'done' : 'to do';
+  }
+});
+</script>
+</body></html>
+"""
+
 RATER_PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>RealEval: rate a trial</title>
 <style>body { font-family: sans-serif; margin: 1em; } video { width: 960px; }</style></head>
 <body>
 <h1>Rate trial <span id="code"></span></h1>
+<p><a href="/rate">all trials</a> &middot; rating as <b id="rater"></b></p>
 <p id="instruction"></p>
 <video id="video" controls muted></video>
 <form id="rating">
-<p>Rater id <input id="rater" required></p>
 <fieldset><legend>Rubric: stages reached</legend><div id="stages"></div></fieldset>
 <p><label><input type="checkbox" id="success"> the task succeeded</label></p>
 <button type="submit" id="submit">Submit rating</button>
@@ -128,14 +158,14 @@ RATER_PAGE = """<!doctype html>
 const code = location.pathname.split('/').pop(); const $ = (id) => document.getElementById(id);
 $('code').textContent = code; $('video').src = `/video/${code}.mp4`;
 fetch(`/api/trials/${code}/rubric`).then(r => r.json()).then(r => {
-  $('instruction').textContent = 'Instruction: ' + r.instruction;
+  $('instruction').textContent = 'Instruction: ' + r.instruction; $('rater').textContent = r.rater || '';
   $('stages').innerHTML = r.stages.map(s => `<label><input type="checkbox" class="stage" name="${s.name}"> ${s.name} (weight ${s.weight})</label><br>`).join('');
 });
 $('rating').onsubmit = async (e) => {
   e.preventDefault();
   const stages = {}; for (const box of document.querySelectorAll('.stage')) stages[box.name] = box.checked;
   const r = await fetch(`/api/trials/${code}/ratings`, {method: 'POST', headers: {'Content-Type': 'application/json'},
-    body: JSON.stringify({rater: $('rater').value, success: $('success').checked, stages})});
+    body: JSON.stringify({success: $('success').checked, stages})});
   const v = await r.json();
   $('verdict').textContent = !r.ok ? v.detail : v.flagged ? `flagged for adjudication: ${v.reason}` :
     v.settled ? `settled: success ${v.success}, score ${v.score.toFixed(1)}` : `recorded (${v.reason})`;

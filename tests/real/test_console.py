@@ -1,8 +1,10 @@
 """The RealEval operator console end to end, in headless Chromium (Debian's, driven by Playwright) against the
 emulated PiPER: log in with the token, reset the scene and record its layout, start a trial, e-stop it with the
 keyboard, see the arms return to the reset pose in the emulator's own state, find the trial's video, and have
-three raters score it blind (a planted disagreement is flagged; an appeal is recorded). Without the token every
-page and the socket answer 401. A screenshot of each step is written to <results root>/figures/console/.
+three raters, each logged in with their own token, score it blind (a planted disagreement is flagged; an appeal
+is recorded). Without a valid token every page and the socket answer 401; a rater's token on an operator page or
+the socket answers 403, and the operator's token does not score. A screenshot of each step is written to
+<results root>/figures/console/.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from dojo.evaluation.results_store import ResultsStore  # noqa: E402
 from dojo.evaluation.run_dir import results_root  # noqa: E402
 from dojo.realeval.app import create_app  # noqa: E402
 from dojo.realeval.cli import build_session, console_config  # noqa: E402
+from dojo.realeval.raters import RaterRegistry  # noqa: E402
 
 PACK = Path(__file__).parent / "pack"
 TOKEN = "test-console-token"
@@ -66,15 +69,21 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+RATERS = ("rater_1", "rater_2", "rater_3")
+_RATER_TOKENS: dict[str, str] = {}
+
+
 @pytest.fixture(scope="module")
 def console(tmp_path_factory) -> Iterator[tuple[str, object]]:
     tmp = tmp_path_factory.mktemp("console")
+    raters = RaterRegistry(tmp / "raters.json")
+    _RATER_TOKENS.update({name: raters.add(name) for name in RATERS})
     (tmp / "sweeper.py").write_text(POLICY)
     cfg = console_config([f"packs=[{PACK}]", "suite=console_probe", f"policy={tmp / 'sweeper.py'}",
                           f"out={tmp / 'out'}", f"plans={tmp / 'plans'}"])
     session = build_session(cfg)
     port = _free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(session, TOKEN), host="127.0.0.1", port=port,
+    server = uvicorn.Server(uvicorn.Config(create_app(session, TOKEN, raters), host="127.0.0.1", port=port,
                                            log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -106,6 +115,31 @@ def test_without_the_token_every_page_and_the_socket_answer_401(console) -> None
         assert refused.value.response.status_code == 401
     with connect(f"ws://{host}/ws/state?token={TOKEN}", open_timeout=10) as ws:
         assert "safety" in ws.recv(timeout=10)
+
+
+def test_a_raters_token_opens_only_the_rater_pages_and_the_operators_does_not_score(console) -> None:
+    host, session = console
+    code = session.trials[0].code
+    rater = {"Authorization": f"Bearer {_RATER_TOKENS['rater_1']}"}
+    operator = {"Authorization": f"Bearer {TOKEN}"}
+    for path in ("/", "/api/trials", "/api/state", "/camera/head.jpg", f"/layout/{code}/head.png",
+                 f"/api/trials/{code}/alignment"):
+        assert httpx.get(f"http://{host}{path}", headers=rater).status_code == 403, path
+    for path in (f"/api/trials/{code}/reset", f"/api/trials/{code}/start", f"/api/trials/{code}/layout",
+                 "/api/estop", "/api/stop", f"/api/trials/{code}/appeals"):
+        assert httpx.post(f"http://{host}{path}", json={}, headers=rater).status_code == 403, path
+    with pytest.raises(InvalidStatus) as refused:
+        connect(f"ws://{host}/ws/state?token={_RATER_TOKENS['rater_1']}", open_timeout=10).close()
+    assert refused.value.response.status_code == 403
+    listed = httpx.get(f"http://{host}/api/rater/trials", headers=rater)
+    assert listed.status_code == 200 and listed.json()["rater"] == "rater_1"
+    assert httpx.get(f"http://{host}/rate/{code}", headers=rater).status_code == 200
+    assert httpx.get(f"http://{host}/api/trials/{code}/rubric", headers=rater).json()["rater"] == "rater_1"
+    answer = httpx.post(f"http://{host}/api/trials/{code}/ratings", json={"success": True}, headers=operator)
+    assert answer.status_code == 403 and "does not score" in answer.json()["detail"]
+    login = httpx.post(f"http://{host}/login", data={"token": _RATER_TOKENS["rater_2"]})
+    assert login.status_code == 303 and login.headers["location"] == "/rate"
+    assert httpx.post(f"http://{host}/login", data={"token": TOKEN}).headers["location"] == "/"
 
 
 def test_an_operator_runs_and_e_stops_a_trial_and_raters_score_it_blind(console, figures) -> None:
@@ -156,15 +190,20 @@ def test_an_operator_runs_and_e_stops_a_trial_and_raters_score_it_blind(console,
                      page.request.get(f"http://{host}/api/state").text()):
             assert POLICY_NAME not in item and session.run_id not in item
 
-        rater = browser.new_page()
-        rater.context.add_cookies([{"name": "dojo_console", "value": TOKEN, "url": f"http://{host}"}])
         for rater_id, touched, success, expected in (("rater_1", True, False, "recorded (1 of 3 ratings)"),
                                                      ("rater_2", True, False, "recorded (2 of 3 ratings)"),
                                                      ("rater_3", False, True, "flagged for adjudication")):
-            rater.goto(f"http://{host}/rate/{trial.code}")
+            rater = browser.new_context().new_page()  # each rater in their own browser, with their own token
+            assert rater.goto(f"http://{host}/rate/{trial.code}").status == 401
+            rater.fill("#token", _RATER_TOKENS[rater_id])
+            rater.click("#login")
+            rater.wait_for_selector(f"#trial-{trial.code} a.rate")
+            assert rater.goto(f"http://{host}/").status == 403
+            rater.goto(f"http://{host}/rate")
+            rater.click(f"#trial-{trial.code} a.rate")
             rater.wait_for_selector(".stage[name=lifted]")
+            rater.wait_for_function(f"document.getElementById('rater').textContent === {rater_id!r}")
             assert POLICY_NAME not in rater.content() and session.run_id not in rater.content()
-            rater.fill("#rater", rater_id)
             if touched:
                 rater.check(".stage[name=touched]")
             if success:
@@ -172,7 +211,12 @@ def test_an_operator_runs_and_e_stops_a_trial_and_raters_score_it_blind(console,
             rater.click("#submit")
             rater.wait_for_function(f"document.getElementById('verdict').textContent.startsWith({expected!r})")
         rater.screenshot(path=shots / "4_rater_flagged.png")
-        appeal = rater.request.post(f"http://{host}/api/trials/{trial.code}/appeals",
+        rater.goto(f"http://{host}/rate")
+        rater.wait_for_selector(f"#trial-{trial.code} >> text=done")
+        rater.screenshot(path=shots / "5_rater_list.png")
+        assert page.request.post(f"http://{host}/api/trials/{trial.code}/ratings",
+                                 data={"success": True}).status == 403  # the operator does not score
+        appeal = page.request.post(f"http://{host}/api/trials/{trial.code}/appeals",
                                     data={"reason": "the block was misplaced at the start",
                                           "outcome": "upheld: re-run the trial"})
         assert appeal.status == 200 and appeal.json()["appeals"][0]["outcome"] == "upheld: re-run the trial"
