@@ -91,12 +91,20 @@ def judge(ratings: Sequence[Rating], needed: int = RATERS_PER_TRIAL, disagreemen
 
 
 class RatingStore:
-    """The `ratings` and `appeals` tables of the results store at `path` (one instance per thread)."""
+    """The `ratings` and `appeals` tables of the results store at `path` (one instance per thread). `readonly`
+    (a report) opens the file read-only and reads a store nobody has rated yet as having no ratings."""
 
-    def __init__(self, path: Path) -> None:
-        self._db = sqlite3.connect(path, timeout=30.0, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.executescript(_SCHEMA)
+    def __init__(self, path: Path, readonly: bool = False) -> None:
+        if readonly:
+            self._db = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, timeout=30.0,
+                                       isolation_level=None)
+            tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            self._empty = not {"ratings", "appeals"} <= tables
+        else:
+            self._db = sqlite3.connect(path, timeout=30.0, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.executescript(_SCHEMA)
+            self._empty = False
 
     def rate(self, run_id: str, key: EpisodeKey, rating: Rating) -> None:
         """Record (or replace: a rater may correct their own marks) one rater's marks of a trial."""
@@ -107,6 +115,8 @@ class RatingStore:
              rating.score))
 
     def ratings(self, run_id: str, key: EpisodeKey) -> list[Rating]:
+        if self._empty:
+            return []
         rows = self._db.execute(
             "SELECT rater, success, stages, score FROM ratings WHERE run_id = ? AND plan_hash = ? AND eval_seed = ? "
             "AND episode = ? ORDER BY rater", (run_id, *key)).fetchall()
@@ -126,6 +136,8 @@ class RatingStore:
             raise KeyError(f"no appeal {appeal_id}")
 
     def appeals(self, run_id: str, key: EpisodeKey) -> list[dict[str, Any]]:
+        if self._empty:
+            return []
         rows = self._db.execute(
             "SELECT id, reason, outcome, filed_at FROM appeals WHERE run_id = ? AND plan_hash = ? AND eval_seed = ? "
             "AND episode = ? ORDER BY id", (run_id, *key)).fetchall()

@@ -94,6 +94,7 @@ def render_html(report: dict[str, Any], html_dir: Path | None = None) -> str:
         "over seed replicates. Average = mean of the dimension means. Partial entries lack a dimension and "
         "are not ranked; privileged references (the scripted <code>oracle</code>) read the simulator state, show "
         "that the tasks are solvable and are not ranked either.</p>",
+        _real_section(report.get("real")),
     ]
     if scored:
         parts += ['<h2 id="plots">Plots</h2>', '<div class="charts">',
@@ -134,6 +135,37 @@ def _leaderboard_table(entries: list[dict[str, Any]], dims: dict[str, str]) -> s
                     f'{_cell(scores["overall"])}</tr>')
     return (f'<table class="leaderboard"><thead><tr><th>#</th><th class="l">Policy</th>{head}'
             f"<th><i>Average</i></th></tr></thead><tbody>{''.join(rows)}</tbody></table>")
+
+
+def _real_section(real: dict[str, Any] | None) -> str:
+    """Real-robot trials beside the simulation leaderboard: the raters' verdicts, flagged trials, appeals."""
+    if not real or not real["tasks"]:
+        return ""
+
+    def num(value: float | None) -> str:
+        return "—" if value is None else f"{value:.1f}"
+
+    def trial(t: dict[str, Any]) -> list[str]:
+        return [_e(t["policy"]), _e(t["task"]), f'<code>{_e(t["run_id"])}</code>', f'{t["eval_seed"]}/{t["episode"]}']
+
+    rows = [[_e(t["policy"]), _e(t["task"]), str(t["trials"]), str(t["settled"]), str(t["flagged"]), str(t["open"]),
+             num(t["success_rate"]) + ("" if t["success_rate"] is None else "%"), num(t["score"]), str(t["appeals"])]
+            for t in real["tasks"]]
+    out = ['<h2 id="real">Real robots (RealEval): raters\' verdicts</h2>',
+           _table(["Policy", "Task", "Trials", "Settled", "Flagged", "Open", "Success", "Score", "Appeals"], rows,
+                  "llnnnnnnn", cls="real"),
+           '<p class="muted small">Scored by three raters from each trial\'s videos, blind to the policy. Success '
+           "and score are over the settled trials; flagged trials await adjudication; open ones lack ratings.</p>"]
+    if real["flagged"]:
+        flagged = [trial(t) + [_e(t["reason"]), _e(", ".join(t["raters"]))] for t in real["flagged"]]
+        out.append("<h3>Flagged for adjudication</h3>" + _table(
+            ["Policy", "Task", "Run", "Seed/trial", "Why", "Raters"], flagged, "lllnll", cls="flagged"))
+    if real["appeals"]:
+        appeals = [trial(a) + [_e(a["reason"]), _e(a["outcome"] or "pending"), _e(a["filed_at"])]
+                   for a in real["appeals"]]
+        out.append("<h3>Appeals</h3>" + _table(
+            ["Policy", "Task", "Run", "Seed/trial", "Reason", "Outcome", "Filed"], appeals, "lllnlll", cls="appeals"))
+    return "\n".join(out)
 
 
 def _verdict_badge(verification: dict[str, Any]) -> str:

@@ -2,6 +2,9 @@
 
 Several runs make a leaderboard: rows are grouped into entries by policy name, each entry is scored with
 `scoring.score_episodes` (public rows) and checked with `verification.verify` (public vs hidden rows).
+Real-robot trials (backend `real`) are not scored by the robot but by raters: they are left out of the
+leaderboard and shown beside it with the raters' verdicts, read from the same stores by `dojo.realeval.scores`
+(settled trials' success rate and score per policy and task, the trials flagged for adjudication, appeals).
 
 The page itself is rendered by `html_page` (charts by `svg_charts`). Hidden verification layouts stay
 private: the JSON and the page give only the hidden split's aggregate counts, never its plan hashes, videos
@@ -28,6 +31,8 @@ from dojo.evaluation.policy_link import PRIVILEGED_NOTE, is_privileged
 from dojo.report.html_page import is_url, render_html
 from dojo.evaluation.results_store import STORE_FILENAME, ResultsStore, StoreError, store_paths
 from dojo.evaluation.run_dir import results_root
+from dojo.realeval.ratings import DISAGREEMENT, RATERS_PER_TRIAL
+from dojo.realeval.scores import REAL_BACKEND, JudgedTrial, judged_trials, task_scores
 from dojo.report.scoring import STD_DDOF, score_episodes
 from dojo.evaluation.verification import ALPHA, verify
 
@@ -62,14 +67,43 @@ def load_rows(sources: Sequence[str | Path], run_ids: Collection[str] | None = N
     return list(rows.values())
 
 
+def load_real_trials(sources: Sequence[str | Path], run_ids: Collection[str] | None = None) -> list[JudgedTrial]:
+    """The real trials of every source with their raters' verdicts and appeals (each store read with its own
+    ratings), optionally only some run ids; the same trial named twice is kept once."""
+    trials: dict[tuple[str, str, int, int], JudgedTrial] = {}
+    for path in (p for source in sources for p in store_paths(source)):
+        for trial in judged_trials(path):
+            if run_ids is None or trial.row.run_id in run_ids:
+                trials.setdefault((trial.row.run_id, *trial.row.key), trial)
+    return list(trials.values())
+
+
+def real_section(trials: Sequence[JudgedTrial]) -> dict[str, Any]:
+    """The report's real-robot part: verdicts by policy and task, the flagged trials and the appeals."""
+    def where(t: JudgedTrial) -> dict[str, Any]:
+        return {"policy": t.row.policy_name, "task": t.row.task, "run_id": t.row.run_id,
+                "eval_seed": t.row.eval_seed, "episode": t.row.episode}
+
+    ordered = sorted(trials, key=lambda t: (t.row.policy_name, t.row.task, t.row.run_id, *t.row.key))
+    return {
+        "tasks": [vars(s) for s in task_scores(ordered)],
+        "flagged": [{**where(t), "reason": t.verdict.reason, "raters": [r.rater for r in t.verdict.ratings]}
+                    for t in ordered if t.verdict.flagged],
+        "appeals": [{**where(t), "reason": a["reason"], "outcome": a["outcome"], "filed_at": a["filed_at"]}
+                    for t in ordered for a in t.appeals],
+    }
+
+
 def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = (),
-                 taxonomy: Taxonomy | None = None) -> dict[str, Any]:
+                 taxonomy: Taxonomy | None = None, real_trials: Sequence[JudgedTrial] = ()) -> dict[str, Any]:
     """The report as plain data: one entry per policy, sorted into a leaderboard by overall score, over the scored
-    dimensions of `taxonomy` (RoboDojo's when None)."""
+    dimensions of `taxonomy` (RoboDojo's when None), from the simulation rows; the real trials (`real_trials`,
+    judged by raters) beside it."""
     taxonomy = taxonomy or builtin_taxonomy()
     by_policy: dict[str, list[EpisodeResult]] = defaultdict(list)
     for row in rows:
-        by_policy[row.policy_name].append(row)
+        if row.backend != REAL_BACKEND:  # a robot reports no score: raters give it (`real_trials`)
+            by_policy[row.policy_name].append(row)
     entries = []
     for policy, policy_rows in by_policy.items():
         public = [r for r in policy_rows if r.split == "public"]
@@ -110,10 +144,15 @@ def build_report(rows: Sequence[EpisodeResult], sources: Sequence[str | Path] = 
             "relative_drop": "(standard - random) / standard of the Generalization means",
             "verification": f"public vs hidden success: pooled two-proportion z-test, two-sided, alpha={ALPHA}; "
                             "Fisher exact test when an expected cell count is below 5",
+            "real": f"real-robot trials are scored by {RATERS_PER_TRIAL} raters from their videos; a trial is settled "
+                    f"(mean score, their common success mark) unless the scores differ by more than "
+                    f"{DISAGREEMENT:.0f} points or they split on success, which flags it for adjudication; success "
+                    "rate and score are over the settled trials",
         },
         "notes": _comparability_notes(entries),
         "dimensions": [{"id": d, "label": taxonomy.label(d)} for d in taxonomy.scored],
         "entries": entries,
+        "real": real_section(real_trials),
     }
 
 
@@ -196,7 +235,7 @@ def write_report(
     if not rows:
         which = "" if run_ids is None else f" for run ids {sorted(run_ids)}"
         raise ReportError(f"no episodes found in {', '.join(map(str, sources))}{which}")
-    report = build_report(rows, sources, taxonomy)
+    report = build_report(rows, sources, taxonomy, load_real_trials(sources, run_ids))
     out_json, out_html = Path(out_json), Path(out_html)
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_html.parent.mkdir(parents=True, exist_ok=True)
@@ -267,6 +306,11 @@ def report_main(args: list[str]) -> int:
         privileged = f" [{PRIVILEGED_NOTE}]" if entry["privileged"] else ""
         print(f"{entry['policy']}: score {_plain(overall['score'])}, success {_plain(overall['success'])}%"
               f"{partial}, {entry['verification']['verdict']}{privileged}")
+    for real in report["real"]["tasks"]:
+        judged = "no settled trial" if real["settled"] == 0 else \
+            f"success {real['success_rate']:.1f}%, score {real['score']:.1f} over {real['settled']} settled"
+        print(f"{real['policy']} on {real['task']} (real): {judged} of {real['trials']} trials, {real['flagged']} "
+              f"flagged, {real['appeals']} appeal(s)")
     runs = sum(len(e["runs"]) for e in report["entries"])
     print(f"wrote {out / 'report.json'} and {out / 'report.html'} ({runs} run(s) of {len(report['entries'])} "
           "policies)")
