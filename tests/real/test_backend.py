@@ -101,9 +101,11 @@ def test_the_registry_constructor_reads_the_backend_config() -> None:
     from dojo.backends.registry import BackendOptions
 
     options = BackendOptions(cameras=("head",), width=32, height=24,
-                             settings={"driver": "piper", "can": "can_a,can_b"})
-    with pytest.raises(NotImplementedError, match="hardware cameras"):
-        make(options)
+                             settings={"driver": "piper", "can": "can_a,can_b", "cameras": {"head": "opencv:2"}})
+    with make(options) as real:  # the cameras open with the robot, at load
+        assert real.sources == {"head": ("opencv", "2")}
+    with pytest.raises(ValueError, match="backend.cameras.head"):
+        make(dataclasses.replace(options, settings={"cameras": {"head": "webcam"}}))
     with pytest.raises(ValueError, match="privileged"):
         make(BackendOptions(privileged=True))
     with make(dataclasses.replace(options, cameras=())) as real:

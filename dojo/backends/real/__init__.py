@@ -1,6 +1,7 @@
 """The real backend: robot drivers behind one interface, a safety layer, and a hardware emulator.
 
-`driver.Driver` is the interface (PiPER / PiPER X through `piper-sdk` in `piper_driver`); `safety` sits between
+`driver.Driver` is the interface (PiPER / PiPER X through `piper-sdk` in `piper_driver`), `cameras.CameraSource`
+the cameras' (OpenCV/V4L2, RealSense, or the emulator's); `safety` sits between
 the policy and the driver; `realtime_sim` + `piper_emulator` are the emulated hardware that the unmodified
 maker's SDK drives over a python-can bus, so all of it runs and is tested without a robot. The makers' packages
 and python-can are the optional extra `robodojo[real]` (`piper_emulator` needs python-can, `piper_driver`
@@ -19,7 +20,8 @@ if TYPE_CHECKING:
 def make(options: Any) -> RealBackend:
     """The backend registry's constructor (`make(options)`, options as `dojo.backends.registry.BackendOptions`):
     cameras, width, height and depth from the options; from the `backend=real` config's own keys (`settings`):
-    `driver` (emulator | piper), `can` (the left and right arm's CAN buses), `emulator` (EmulatorParams fields).
+    `driver` (emulator | piper), `can` (the left and right arm's CAN buses), `emulator` (EmulatorParams fields),
+    `cameras` (each camera's source: `emulator`, or a map camera -> opencv:DEVICE | realsense:SERIAL).
     A robot has no simulator state to give, so a privileged policy (the oracle) cannot run on it."""
     from dojo.backends.real.backend import RealBackend
 
@@ -29,7 +31,7 @@ def make(options: Any) -> RealBackend:
     settings = dict(options.settings)
     return RealBackend(driver=str(settings.get("driver", "emulator")), can=settings.get("can"),
                        cameras=options.cameras, width=options.width, height=options.height, depth=options.depth,
-                       emulator=settings.get("emulator"))
+                       emulator=settings.get("emulator"), sources=settings.get("cameras", "emulator"))
 
 
 SIMULATED_ONLY = {

@@ -17,8 +17,9 @@ step (`StepResult.counters`) so that each trial's row in the results store keeps
 `driver="emulator"` (the default) runs the plan's own scene in the emulator (`EmulatedRobot`), through the
 maker's SDK as on hardware; a reset puts the scene at the plan's initial state, as the operator would.
 `driver="piper"` runs the hardware on the CAN buses `can` (default: the robot's configuration); a reset
-returns the arms to the reset pose slowly, and the scene is the operator's to lay out. Cameras are emulated
-only, so far. An e-stop (`backend.safety.estop()`, from any thread) stays in force across resets until
+returns the arms to the reset pose slowly, and the scene is the operator's to lay out. Cameras come from
+`sources` (`backend.cameras`, see `cameras`): the emulator's by default, USB cameras through OpenCV/V4L2 or
+RealSense cameras on hardware; they are opened before the arms are connected. An e-stop (`backend.safety.estop()`, from any thread) stays in force across resets until
 `backend.safety.release()`.
 """
 
@@ -34,8 +35,8 @@ import numpy as np
 from dojo.backends import actions as A
 from dojo.backends.base import END_HORIZON, END_NONFINITE, Backend, EpisodeDone, Observation, StepResult, checked_actions, envelope, resolve_ids
 from dojo.backends.mujoco.kinematics import ArmKinematics, RobotIndex
+from dojo.backends.real.cameras import CameraSource, open_cameras, parse_sources
 from dojo.backends.real.driver import Driver
-from dojo.backends.real.emulated_cameras import EmulatedCameras
 from dojo.backends.real.emulator import EmulatedRobot, EmulatorParams
 from dojo.backends.real.robot_config import RealRobotConfig
 from dojo.backends.real.safety import SafetyLayer
@@ -58,23 +59,23 @@ class RealBackend(Backend):
 
     def __init__(self, driver: str = "emulator", can: str | Sequence[str] | None = None,
                  cameras: Sequence[str] = (), width: int = 640, height: int = 480, depth: bool = False,
-                 emulator: Mapping[str, Any] | None = None) -> None:
+                 emulator: Mapping[str, Any] | None = None, sources: Any = "emulator") -> None:
         """`driver`: `emulator` or `piper`; `can`: the left and right arm's CAN buses (a list, or one string
-        `left,right`); `cameras` rendered at width x height; `emulator`: `EmulatorParams` fields."""
+        `left,right`); `cameras` at width x height, each from its source in `sources` (the `backend.cameras`
+        setting); `emulator`: `EmulatorParams` fields."""
         if driver not in DRIVERS:
             raise ValueError(f"backend real: unknown driver {driver!r}; one of {', '.join(DRIVERS)}")
         self.driver_name = driver
         self.can = tuple(can.split(",")) if isinstance(can, str) else tuple(can or ())
         self.camera_names, self.width, self.height, self.depth = tuple(cameras), width, height, depth
         self.emulator_params = EmulatorParams(**dict(emulator or {}))
-        if self.camera_names and driver != "emulator":
-            raise NotImplementedError("backend real: hardware cameras are not built yet; run without cameras")
+        self.sources = parse_sources(sources, self.camera_names)
         self.safety: SafetyLayer | None = None
         self._plan: Any = None
         self._embodiment: str | None = None
         self._emulated: EmulatedRobot | None = None
         self._driver: Driver | None = None
-        self._cameras: EmulatedCameras | None = None
+        self._cameras: CameraSource | None = None
         self._kinematics: ArmKinematics | None = None
         self._scene: mujoco.MjModel | None = None
         self._step = 0
@@ -123,8 +124,6 @@ class RealBackend(Backend):
         if self.driver_name == "emulator":
             self._emulated = EmulatedRobot(model, plan.robot, config, self.emulator_params, plan.init_qpos)
             self._driver = self._emulated.driver()
-            if self.camera_names:
-                self._cameras = self._emulated.cameras(self.camera_names, self.width, self.height, self.depth)
         elif config.driver == "piper":
             from dojo.backends.real.piper_driver import PiperDriver
 
@@ -133,6 +132,12 @@ class RealBackend(Backend):
             raise ValueError(f"backend real: robot {config.robot} has no hardware driver yet (driver "
                              f"{config.driver}; see dojo/backends/real/robots/{config.robot}.yaml); run it with "
                              "backend.driver=emulator")
+        if self.camera_names:
+            emulated = self._emulated
+            self._cameras = open_cameras(
+                self.sources, self.width, self.height, self.depth,
+                None if emulated is None else lambda names: emulated.cameras(names, self.width, self.height,
+                                                                             self.depth))
         self._driver.connect()
         self._embodiment = plan.embodiment
         self._kinematics = ArmKinematics(model, RobotIndex.build(model, plan.robot))

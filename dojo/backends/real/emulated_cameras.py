@@ -13,15 +13,17 @@ import mujoco
 import numpy as np
 
 from dojo.backends.mujoco.render import RendererCache
+from dojo.backends.real.cameras import CameraSource
 from dojo.backends.real.realtime_sim import RealTimeSim
 
 
-class EmulatedCameras:
+class EmulatedCameras(CameraSource):
     """Frames of `cameras` from `sim`, at width x height, with `drop` probability of a repeated frame."""
 
     def __init__(self, sim: RealTimeSim, cameras: Sequence[str], width: int, height: int, depth: bool = False,
                  drop: float = 0.0, seed: int = 0) -> None:
         self.sim, self.cameras, self.depth, self.drop = sim, list(cameras), depth, drop
+        self.names = tuple(cameras)
         self.dropped = 0
         self._renderers = RendererCache(width, height)
         self._rng = np.random.default_rng(seed)
