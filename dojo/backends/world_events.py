@@ -12,9 +12,11 @@ Each event has one trigger, `at_step: k` (fires once the episode has run k contr
 - `remove: obj`: parked for good;
 - `cover: [occluder, target]`: the movable occluder is put over the target (centred on it, at its own start
   height and attitude: a cup upside down over a card);
-- `lock: obj/joint` holds the joint where it is; `unlock: obj/joint` frees it again.
+- `lock: obj/joint` holds the joint where it is (with `at_step: 0`, where it starts, from the first physics step);
+  `unlock: obj/joint` frees it again.
 Every event fires at most once. Parked objects and locked joints are held by writing their positions and zero
-velocities before each physics step, so nothing else about the model changes (plans of a task share one model).
+velocities before each control step (locked joints after every physics step too), so nothing else about the model
+changes (plans of a task share one model).
 """
 
 from __future__ import annotations
@@ -79,9 +81,14 @@ class WorldEvents:
     def start(self, data: mujoco.MjData) -> EventState:
         """A fresh episode: objects that are spawned later are parked from the first step."""
         state = EventState()
-        for event in self.events:
+        for k, event in enumerate(self.events):
             if event.action == "spawn" and event.name not in state.parked:
                 state.parked[event.name] = self.init_qpos[list(event.qpos)].copy()
+            elif event.action == "lock" and event.trigger < 0 and event.at_step == 0:
+                # locked from the first physics step, not after the first control step: a lock that holds until a
+                # key is in must not give way to whatever pushes it before the first check
+                state.fired.add(k)
+                state.locked[event.name] = float(self.init_qpos[event.qpos[0]])
         self.hold(state, data)
         return state
 
@@ -91,6 +98,11 @@ class WorldEvents:
             event = self._by_name[name]
             data.qpos[list(event.qpos)] = [*self.park[name], 1.0, 0.0, 0.0, 0.0]
             data.qvel[list(event.dof)] = 0.0
+        self.hold_locked(state, data)
+
+    def hold_locked(self, state: EventState, data: mujoco.MjData) -> None:
+        """Locked joints back at their value and still (the CPU backend also calls this after every physics step
+        while a joint is locked)."""
         for name, value in state.locked.items():
             event = self._by_name[name]
             data.qpos[event.qpos[0]] = value

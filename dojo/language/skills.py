@@ -92,6 +92,10 @@ for _name, _description, _run in (
     ("wait", "hold still for `steps` control steps", f"{_EXPERT}:run_wait"),
     ("strike", "hit the target point with the held tool's head, driven down at speed", f"{_PRECISION}:run_strike"),
     ("pour", "tip the container's contents into the target, its mouth held over the target's", f"{_PRECISION}:run_pour"),
+    ("plug", "put the object's leading end (`tip`) into the target socket: its heading turned to the socket's, aimed "
+             "at the entrance to a fraction of a millimetre, pushed to the floor", "dojo.experts.keyed_skills:run_plug"),
+    ("turn", "grip the object where it stands (a key in its lock) and turn it `angle` degrees about the vertical, "
+             "counter-clockwise seen from above", "dojo.experts.keyed_skills:run_turn"),
     ("catch", "pick the object off the moving conveyor belt that carries it, fingers open across the belt where it "
               "will pass (then put at the target, if one is given)", "dojo.experts.conveyor_skills:run_catch"),
     ("lift", "raise the object `height` above the table and set it down again where it stood",

@@ -208,7 +208,14 @@ class MujocoBackend(Backend):
                 slot.compiled.events.hold(slot.events, slot.data)
             for actor, state in zip(slot.compiled.actors, slot.actors):
                 actor.hold(state, slot.data, slot.step)
-            mujoco.mj_step(slot.compiled.model, slot.data, nstep=slot.plan.n_substeps)
+            if slot.events is not None and slot.events.locked:
+                # a locked joint is held at every physics step, so that nothing pushing it (a key turned in a
+                # locked cylinder) moves it within a control step either
+                for _ in range(slot.plan.n_substeps):
+                    mujoco.mj_step(slot.compiled.model, slot.data)
+                    slot.compiled.events.hold_locked(slot.events, slot.data)
+            else:
+                mujoco.mj_step(slot.compiled.model, slot.data, nstep=slot.plan.n_substeps)
 
         chunks = [range(t, len(slots), self.num_threads) for t in range(min(self.num_threads, len(slots)))]
         helpers = [self._pool.submit(lambda chunk=chunk: [advance(k) for k in chunk]) for chunk in chunks[1:]]
