@@ -4,10 +4,12 @@ Spec (task schema `$defs/opponent`): `board` (a fixture), `cells` (its placement
 `pieces` (the group of the opponent's pieces, played in name order), `after` (the group of the robot's
 pieces), `rule` and `delay`. The opponent moves once more of the robot's pieces lie settled on the board than of
 its own, `delay` control steps after that became so: it puts its next piece flat on a free cell (its start
-attitude, resting on the board), chosen by its rule:
+attitude, resting on the board), chosen by its rule (`dojo.backends.opponent_rules`):
 - `random`: uniformly at random among the free cells. The choice is made at compile time as a preference order
   over all cells drawn from the episode's seed (`dojo.compiler.actor_draws`), of which it takes the first free
   cell: a fixed strategy per episode, in the plan, so a replay is exact.
+- `win_then_block`: completes one of its own `lines` if it can, else blocks one of the robot's, else takes the
+  first free cell of `prefer` (default: `cells` as listed), e.g. centre, corners, edges.
 A piece lies on a cell when its origin (the centre of its footprint) is within the cell's box in the plane and at
 the board's height, it is still, and no robot geom touches it.
 """
@@ -19,6 +21,8 @@ from typing import Any
 
 import mujoco
 import numpy as np
+
+from dojo.backends.opponent_rules import RULES
 
 SETTLED = 0.03
 """A piece moving slower than this (m/s) has been let go."""
@@ -47,6 +51,8 @@ class Opponent:
         self.cells = np.array([data.site_xpos[model.site(sites[c]).id] for c in cells])
         self.half = np.array([model.site_size[model.site(sites[c]).id][:2] for c in cells])
         self.order = [cells.index(c) for c in spec["order"]]
+        self.lines = [[cells.index(c) for c in line] for line in spec.get("lines", [])]
+        self.rule = RULES[spec.get("rule", "random")]
         self.surface = float(np.mean(self.cells[:, 2]))
         members = lambda group: sorted(n for n, o in plan.objects.items() if o.get("group") == group)  # noqa: E731
         self.mine, self.theirs = members(spec["pieces"]), members(spec["after"])
@@ -93,11 +99,12 @@ class Opponent:
             state.waiting_since = step
         if step - state.waiting_since < self.delay:
             return
-        taken = {c for n in self.theirs + self.mine if (c := self._cell_of(data, n)) is not None}
-        free = [c for c in self.order if c not in taken]
-        if not free:
+        own = {c for n in self.mine if (c := self._cell_of(data, n)) is not None}
+        robot = {c for n in self.theirs if (c := self._cell_of(data, n)) is not None}
+        cell = self.rule(self.order, self.lines, own, robot)
+        if cell is None:
             return
-        name, cell = self.mine[state.played], free[0]
+        name = self.mine[state.played]
         pose = self.start_pose[name].copy()
         pose[:2] = self.cells[cell, :2]
         pose[2] = self.surface + 0.001

@@ -1,4 +1,4 @@
-"""The choices a task's actors make, drawn per episode: a conveyor's item order and speed.
+"""The choices a task's actors make, drawn per episode: a conveyor's item order and speed, an opponent's order.
 
 Drawn here, at compile time, from a stream of their own seeded by (task, setting, seed), so they are part of the
 plan (`plan.program["actors"]`, every choice resolved) and covered by its hash like the scene (which the same
@@ -54,9 +54,12 @@ def _conveyor(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
 
 
 def _opponent(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
-    """The `random` rule's preference order over the cells (the opponent takes the first free one)."""
+    """Its preference order over the cells (where no line decides, it takes the first free one): drawn for the
+    `random` rule, else the spec's fixed `prefer` (default: the cells as listed)."""
     cells = list(spec["cells"])
-    return {**spec, "order": [cells[int(k)] for k in rng.permutation(len(cells))]}
+    if spec.get("rule", "random") == "random":
+        return {**spec, "order": [cells[int(k)] for k in rng.permutation(len(cells))]}
+    return {**spec, "order": list(spec.get("prefer", cells))}
 
 
 def _demonstrator(spec: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from dojo.backends.world_events import EventError, compile_events
 from dojo.language.facts import FactError, resolve_facts
 
 from dojo.compiler.actor_draws import draw_actors
+from dojo.compiler.object_events import task_events
 from dojo.compiler.horizon import task_horizon
 from dojo.compiler.robot_emit import apply_home
 from dojo.compiler.scene_emit import TABLE_ASSET, emit_scene
@@ -195,10 +196,11 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
                              "fixed": obj.fixed, "half_extents": obj.half_extents, "attributes": obj.attributes}
     regions = {name: {"center": r["center"], "size": r["size"], "on": r.get("on")}
                for name, r in task.data["scene"].get("regions", {}).items()}
+    events = task_events(task.data)  # the spec's events and those its objects write (`hidden_after`)
     try:  # facts (the number on a drawn card) become this episode's values: backends see plain predicates
         program = resolve_facts({"success": task.data["success"], "stages": task.data.get("stages", []),
                                  "stage_order": task.data.get("stage_order", "any"),
-                                 "events": task.data.get("events", []),
+                                 "events": events,
                                  "actors": draw_actors(task.data.get("actors", []), task.id, setting, seed)}, objects)
     except FactError as exc:
         raise SpecError([task.problem(exc.path, str(exc))]) from None
@@ -209,7 +211,8 @@ def compile_plan(library: SpecLibrary, task: Spec, setting: str, seed: int, *,
         cameras=list(emitted.robot.cameras), robot=asdict(emitted.robot), objects=objects, regions=regions,
         program=program, init_qpos=_floats(data.qpos), init_qvel=_floats(data.qvel), init_ctrl=_floats(data.ctrl),
         model_xml=emitted.world.to_xml(), scene=scene.to_json(),
-        settle={"redraws": redraw, "seconds": round(settled.seconds, 3)}, requires=plan_features(model, task.data),
+        settle={"redraws": redraw, "seconds": round(settled.seconds, 3)},
+        requires=plan_features(model, {**task.data, "events": events}),
     )
     try:
         plan.compiled_program = program_to_json(resolve_program(plan))

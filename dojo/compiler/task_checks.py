@@ -140,7 +140,8 @@ def _event_problems(events: list[dict], objects: set[str]) -> list[Problem]:
 def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], objects: set[str],
                     groups: set[str]) -> list[Problem]:
     """A conveyor's belt must be a region and its items movable objects (not fixtures); an opponent's board an
-    object and its pieces groups; a demonstrator's objects movable."""
+    object, its pieces groups and the cells of its lines and preference among its cells; a demonstrator's objects
+    movable."""
     problems: list[Problem] = []
     for i, actor in enumerate(actors):
         opponent = actor.get("opponent")
@@ -152,6 +153,14 @@ def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], ob
             if opponent["board"] not in objects:
                 problems.append((("actors", i, "opponent", "board"), f"unknown object '{opponent['board']}'"
                                                                      f"{did_you_mean(opponent['board'], objects)}", False))
+            cells = set(opponent["cells"])
+            named = [(("lines", k, j), c) for k, line in enumerate(opponent.get("lines", []))
+                     for j, c in enumerate(line)]
+            named += [(("prefer", k), c) for k, c in enumerate(opponent.get("prefer", []))]
+            for where, cell in named:
+                if cell not in cells:
+                    problems.append((("actors", i, "opponent", *where),
+                                     f"'{cell}' is not one of the opponent's cells{did_you_mean(cell, cells)}", False))
         into = str(actor.get("demonstrator", {}).get("into", "")).split("/", 1)[0]
         if into and into not in objects:
             problems.append((("actors", i, "demonstrator", "into"),

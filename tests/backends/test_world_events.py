@@ -84,3 +84,22 @@ def test_validation_names_unknown_objects_in_events(library):
     assert "unknown object 'cube_9'" in problems[("events", 0, "hide")]
     assert "unknown object 'bin'" in problems[("events", 1, "cover", 1)]
     assert "did you mean 'cube_0'" in problems[("events", 1, "when", "on", 0)]
+
+
+def test_hidden_after_hides_each_copy_once_its_stage_holds(library):
+    plan = compile_plan(library, library.get("task", "probe_hidden_after"), "standard", 0)
+    assert "events" in plan.requires and [e["hide"] for e in plan.program["events"]] == ["mark_0", "mark_1"]
+    with MujocoBackend(num_threads=1) as backend:
+        backend.load([plan])
+        backend.reset()
+        data = backend._slots[0].data
+        parked = lambda n: bool(np.linalg.norm(_xy(plan, data, n) - PARK[:2]) < 1.5)  # noqa: E731
+        for _ in range(3):
+            backend.step(np.zeros((1, 14)), mode="joint")
+        assert not parked("mark_0") and not parked("mark_1")  # the stage has not held yet
+        cube = plan.model().joint("cube/free")
+        data.qpos[cube.qposadr[0] + 2] += 0.1  # the cube is lifted: the stage holds from this step
+        data.qvel[cube.dofadr[0]:cube.dofadr[0] + 6] = 0.0
+        for _ in range(2):
+            backend.step(np.zeros((1, 14)), mode="joint")
+        assert parked("mark_0") and parked("mark_1") and not parked("cube")
