@@ -204,6 +204,10 @@ class _Sampler:
             color, rgba = pick["name"], list(pick["rgba"])
         if twin is not None:
             color, rgba = twin.color, twin.rgba
+        elif entry.get("color_of") in self.made:  # the colour an earlier object drew, on this object's asset
+            color = self.made[entry["color_of"]].color
+            named = {c["name"]: c["rgba"] for c in choices or []}
+            rgba = list(named.get(color, NAMED_COLORS.get(color, (0.5, 0.5, 0.5, 1.0))))
         yaw_range = entry.get("yaw", [0.0, 0.0])
         yaw = float(self.rng.uniform(*yaw_range)) if yaw_range[0] != yaw_range[1] else float(yaw_range[0])
         b_lo, b_hi = asset_bounds(asset.data, asset.path.parent, scale) if asset.data["class"] in (

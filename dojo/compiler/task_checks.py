@@ -50,6 +50,10 @@ def task_problems(task: dict) -> list[Problem]:
             if "like" in entry and entry["like"] not in seen - {name}:
                 problems.append((("scene", section, i, "like"), f"'like' names '{entry['like']}', which is not an "
                                  f"object listed before this one{did_you_mean(entry['like'], seen)}", False))
+            if "color_of" in entry and entry["color_of"] not in seen - {name}:
+                problems.append((("scene", section, i, "color_of"), f"'color_of' names '{entry['color_of']}', which "
+                                 f"is not an object listed before this one{did_you_mean(entry['color_of'], seen)}",
+                                 False))
             if "region" not in entry and "pos" not in entry and "inside" not in entry:
                 problems.append((("scene", section, i), f"object '{name}' needs a region, a pos or inside", False))
             if "inside" in entry and entry["inside"] not in seen - {name}:

@@ -31,8 +31,10 @@ PRIVILEGED = "privileged"
 class ScriptedExpert:
     """One episode of a task's scripted expert: pulls skill segments as the rows run out."""
 
-    def __init__(self, plan: Any, steps: list[dict[str, Any]]) -> None:
+    def __init__(self, plan: Any, steps: list[dict[str, Any]], shifts: dict[str, np.ndarray] | None = None) -> None:
         self.plan = plan
+        self.shifts = shifts
+        """Annotations the expert believes elsewhere (`Scene.shifts`): none for the oracle itself."""
         self.model = plan.model()
         self.data = mujoco.MjData(self.model)
         self.ctx: SkillContext | None = None
@@ -45,7 +47,7 @@ class ScriptedExpert:
         self.data.qvel[:] = qvel
         mujoco.mj_forward(self.model, self.data)
         if self.ctx is None:
-            self.ctx = SkillContext(self.plan, self.model, self.data)
+            self.ctx = SkillContext(self.plan, self.model, self.data, self.shifts)
             self.program = program(self.ctx, self.steps)
 
     def act(self, k: int) -> np.ndarray:

@@ -46,8 +46,12 @@ class Target:
 class Scene:
     """Read-only views of one plan's objects in the state held by `data` (call after mj_forward)."""
 
-    def __init__(self, plan: Any, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+    def __init__(self, plan: Any, model: mujoco.MjModel, data: mujoco.MjData,
+                 shifts: dict[str, np.ndarray] | None = None) -> None:
         self.plan, self.model, self.data = plan, model, data
+        self.shifts = dict(shifts or {})
+        """World offsets of annotations (`object/annotation`) from where they are: where an expert believes them
+        to be (the perturbed expert, `dojo.experts.perturbed`, aims its fits off by a few millimetres)."""
         self.table_z = TABLE_TOP_Z
         self._geoms = {name: [model.geom(g).id for g in obj["geoms"]] for name, obj in plan.objects.items()}
         self._initial_xy = self._initial_positions()
@@ -113,7 +117,8 @@ class Scene:
         size = self.model.site_size[sid].copy()
         if self.model.site_type[sid] != mujoco.mjtGeom.mjGEOM_BOX:
             size = np.zeros(3)
-        return Box(self.data.site_xpos[sid].copy(), self.data.site_xmat[sid].reshape(3, 3).copy(), size)
+        centre = self.data.site_xpos[sid] + self.shifts.get(f"{name}/{annotation}", 0.0)
+        return Box(centre, self.data.site_xmat[sid].reshape(3, 3).copy(), size)
 
     def others(self, exclude: tuple[str, ...]) -> list[str]:
         return [n for n in self.plan.objects if n not in exclude]

@@ -82,9 +82,10 @@ RELAY_ROOM = 0.03
 class SkillContext:
     """Commanded joint targets of both arms, the scene, and the primitives skills are written with."""
 
-    def __init__(self, plan: Any, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+    def __init__(self, plan: Any, model: mujoco.MjModel, data: mujoco.MjData,
+                 shifts: dict[str, np.ndarray] | None = None) -> None:
         self.plan, self.model, self.data = plan, model, data
-        self.scene = Scene(plan, model, data)
+        self.scene = Scene(plan, model, data, shifts)
         self.planner = ArmPlanner(model, plan.robot, plan.control_hz)
         self.planner.sync(data)
         self.max_width = float(plan.robot["gripper_max_width"])
@@ -103,7 +104,7 @@ class SkillContext:
     def start_scene(self) -> Scene:
         """The scene as it was at the start of the episode (the plan's initial state)."""
         if self._start_scene is None:
-            self._start_scene = Scene(self.plan, self.model, self.plan.initial_data(self.model))
+            self._start_scene = Scene(self.plan, self.model, self.plan.initial_data(self.model), self.scene.shifts)
         return self._start_scene
 
     # ---- segments ----

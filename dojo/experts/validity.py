@@ -1,6 +1,8 @@
-"""Task validity: the scripted expert (the privileged `oracle`) solves a task, `zero` and `random` do not, and on
+"""Task validity: the scripted expert (the privileged `oracle`) solves a task, `zero` and `random` do not, on
 a task that declares what must be remembered (`memory:`) the expert denied that history (`memoryless`,
-`dojo.experts.memoryless`) does no better than chance: the task really needs memory.
+`dojo.experts.memoryless`) does no better than chance: the task really needs memory, and on a task whose expert
+fits things into tight targets the expert aiming them `--perturb-mm` off (`perturbed`, `dojo.experts.perturbed`)
+fails on most seeds: the tolerances really bind.
 
 DESIGN section 7: every built-in task ships an expert that succeeds on nearly every seed, and a zero policy
 must not succeed. This module compiles (or reuses) the plans of the first N scene seeds of each task (Generalization
@@ -9,6 +11,7 @@ backend with continuous slots, and prints the table:
 
     python -m dojo.experts.validity --seeds 50 --jobs 16           # the full table (minutes on 16 cores)
     python -m dojo.experts.validity --tasks stack_blocks --seeds 3
+    python -m dojo.experts.validity --tasks insert_tubes --seeds 20 --policies expert perturbed --perturb-mm 3
 
 Plans are cached under `$DOJO_PLAN_CACHE/validity` (default ~/.cache/robodojo/plans/validity), named by hash.
 """
@@ -31,6 +34,7 @@ from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_plan_files
 from dojo.compiler.taxonomy import taxonomy_of
 from dojo.experts.memoryless import chance_level
+from dojo.experts.perturbed import PERTURB_DISTANCE, has_fits
 
 from dojo.evaluation.policy_link import is_privileged
 from dojo.cli.run_cmd import DEFAULT_PLAN_CACHE
@@ -125,36 +129,42 @@ def run_policy(model: Any, paths: Sequence[Path], num_envs: int = 8, threads: in
     return outcomes
 
 
-def policies(seed: int = 0) -> dict[str, Any]:
+def policies(seed: int = 0, perturb: float = PERTURB_DISTANCE) -> dict[str, Any]:
     """The policies of the table: the expert, the expert denied the history (`memoryless`, for the tasks that
-    declare one: `dojo.experts.memoryless`), zero and random."""
+    declare one: `dojo.experts.memoryless`), the expert aiming its fits `perturb` metres off (`perturbed`, for the
+    tasks whose expert fits something: `dojo.experts.perturbed`), zero and random."""
     from xpolicylab.policies import RandomPolicy, ZeroPolicy
 
     from dojo.experts.memoryless import MemorylessOracle
     from dojo.experts.oracle import OraclePolicy
+    from dojo.experts.perturbed import PerturbedOracle
 
-    return {"expert": OraclePolicy(), "memoryless": MemorylessOracle(), "zero": ZeroPolicy({"chunk_size": 8}),
+    return {"expert": OraclePolicy(), "memoryless": MemorylessOracle(),
+            "perturbed": PerturbedOracle({"distance": perturb}), "zero": ZeroPolicy({"chunk_size": 8}),
             "random": RandomPolicy({"chunk_size": 8, "seed": seed})}
 
 
 def runs(policy: str, task: Any) -> bool:
-    """Whether the table runs `policy` on `task`: the memoryless expert only where the task declares `memory:`."""
-    return policy != "memoryless" or "memory" in task.data
+    """Whether the table runs `policy` on `task`: the memoryless expert only where the task declares `memory:`,
+    the perturbed one only where its expert fits something."""
+    if policy == "memoryless":
+        return "memory" in task.data
+    return policy != "perturbed" or has_fits(task)
 
 
-def _run_episode(args: tuple[str, str]) -> Outcome:
-    name, path = args
+def _run_episode(args: tuple[str, str, float]) -> Outcome:
+    name, path, perturb = args
     plan = Plan.load(Path(path))
-    return run_policy(policies(seed=plan.seed)[name], [Path(path)], num_envs=1, threads=1)[0]
+    return run_policy(policies(seed=plan.seed, perturb=perturb)[name], [Path(path)], num_envs=1, threads=1)[0]
 
 
-def run_episodes(name: str, paths: Sequence[Path], jobs: int) -> list[Outcome]:
+def run_episodes(name: str, paths: Sequence[Path], jobs: int, perturb: float = PERTURB_DISTANCE) -> list[Outcome]:
     """Policy `name` (of `policies()`) on every plan, one episode per task of a pool of `jobs` processes: the
     experts plan in Python, one core each, so a many-core machine runs the whole table in minutes. Each
     episode runs alone in its backend (CPU episodes do not depend on their batch neighbours), and the random
     policy is seeded with the episode's scene seed, so the figures do not depend on `jobs`."""
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:  # never fork threads
-        return list(pool.map(_run_episode, [(name, str(p)) for p in paths]))
+        return list(pool.map(_run_episode, [(name, str(p), perturb) for p in paths]))
 
 
 def summarize(outcomes: Sequence[Outcome]) -> tuple[float, float]:
@@ -168,7 +178,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", nargs="*", help="task ids (default: every built-in evaluated task)")
     parser.add_argument("--seeds", type=int, default=50, help="scene seeds per task")
-    parser.add_argument("--policies", nargs="*", default=["expert", "memoryless", "zero", "random"])
+    parser.add_argument("--policies", nargs="*", default=["expert", "memoryless", "perturbed", "zero", "random"])
+    parser.add_argument("--perturb-mm", type=float, default=1000 * PERTURB_DISTANCE,
+                        help="how far (mm) the perturbed expert aims its fitting targets off")
     parser.add_argument("--jobs", type=int, default=1,
                         help="processes compiling plans and, above 1, running one episode each at a time")
     parser.add_argument("--num-envs", type=int, default=8, help="episodes at a time with --jobs 1")
@@ -178,7 +190,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     training_only = taxonomy_of(library).training_only
     tasks = args.tasks or sorted(s.id for s in library.of_kind("task") if s.data["dimension"] not in training_only)
     files = plan_files(library, tasks, args.seeds, args.cache, jobs=args.jobs)
-    table = policies()
+    perturb = args.perturb_mm / 1000
+    table = policies(perturb=perturb)
     print("| task | episodes | " + " | ".join(f"{p} success | {p} score" for p in args.policies) + " | chance |")
     print("|---|---|" + "---|---|" * len(args.policies) + "---|")
     for task in tasks:
@@ -190,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 continue
             start = time.monotonic()
             if args.jobs > 1:
-                outcomes = run_episodes(name, files[task], args.jobs)
+                outcomes = run_episodes(name, files[task], args.jobs, perturb)
             else:
                 outcomes = run_policy(table[name], files[task], num_envs=args.num_envs)
             rate, score = summarize(outcomes)

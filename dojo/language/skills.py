@@ -22,6 +22,8 @@ Runner = Callable[[Any, dict[str, Any]], Iterator[Any]]
 _EXPERT = "dojo.experts.skills"
 _ARTICULATED = "dojo.experts.articulated"
 _PRECISION = "dojo.experts.precision_skills"
+_FITS = {"insert", "plug", "screw"}
+"""The built-in skills that fit an object into a tight target (`SkillWord.inserts`)."""
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,9 @@ class SkillWord:
     name: str
     description: str
     run: Runner | str
+    inserts: bool = False
+    """Whether the skill fits its object into its target (a hole, slot or socket) with little play: the perturbed
+    expert (`dojo.experts.perturbed`) aims these targets off by a few millimetres to show that the fit binds."""
 
     def runner(self) -> Runner:
         """The runner, imported on first use when given as a path."""
@@ -104,5 +109,7 @@ for _name, _description, _run in (
      "dojo.experts.board_skills:run_place_free"),
     ("imitate", "once the demonstrator is done, put the robot's partner of each of its objects (`pairs`) at the "
                 "target, in the order it moved them", "dojo.experts.imitation_skills:run_imitate"),
+    ("screw", "fasten the screw in the thread whose socket is the target: insert it, then turn it `turns` full "
+              "turns, a quarter turn per grasp", "dojo.experts.thread_skills:run_screw"),
 ):
-    register(SkillWord(_name, _description, _run))
+    register(SkillWord(_name, _description, _run, inserts=_name in _FITS))

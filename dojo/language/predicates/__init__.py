@@ -23,5 +23,5 @@ from dojo.language.predicate_registry import (  # noqa: F401  (the registry's AP
 )
 from dojo.language.predicates import on, inside, stacked, upright, lifted, joint_bound, aligned, near, touched, pressed  # noqa: F401,E402
 from dojo.language.predicates import ordered, connectives, quantifiers, at_start_of, same_order_as, sequence  # noqa: F401,E402
-from dojo.language.predicates import struck, fraction_inside  # noqa: F401,E402
+from dojo.language.predicates import struck, fraction_inside, tightened  # noqa: F401,E402
 from dojo.language.predicates import plugged, turned  # noqa: F401,E402
