@@ -24,7 +24,7 @@ from dojo.compiler.spec_errors import display_path
 from dojo.compiler.spec_library import SpecLibrary
 
 from dojo.experts.validity import episode_list
-from dojo.strict.checks import PACK_CHECKS, TASK_CHECKS, Audit, CheckResult, Context
+from dojo.strict.checks import PACK_CHECKS, TASK_CHECKS, Audit, CheckResult, Context, has_expert
 from dojo.strict.work import EpisodeRecord, PlanRecord, ResultCache, WorkerPool, compile_twice, run_cached, run_episode
 
 STAGES = {"plans": "compiling plans twice, at rest", "expert": "expert episodes", "floor": "zero and random episodes"}
@@ -85,7 +85,7 @@ class Gatherer:
             plans = {(p.setting, p.seed): p for p in row.plans}
             for setting, seed in episode_list(self.ctx.library, row.task.task_id, self.ctx.seeds):
                 plan = plans[(setting, seed)]
-                for policy in policies:
+                for policy in policies if has_expert(row) else [p for p in policies if p != "expert"]:
                     jobs.append((plan.hash, policy, (policy, plan.path)))
                     owners.append((row, policy))
         records = run_cached(self.pool, self.results, run_episode, jobs, EpisodeRecord, self._bar(need, len(jobs)))

@@ -181,7 +181,26 @@ def _episode_text(e: EpisodeRecord) -> str:
     return f"{e.setting} {e.seed}" + (f" ({e.error})" if e.error else f" (score {e.score:.0f}, {e.steps} steps)")
 
 
+def has_expert(audit: Audit) -> bool:
+    """Whether the row's task declares a scripted expert (only those have expert episodes to judge)."""
+    return audit.task is not None and audit.task.spec is not None and bool(audit.task.spec.data.get("expert"))
+
+
+def _without_expert(name: str, audit: Audit) -> CheckResult:
+    """Solvability or horizon of a task with no scripted expert: not judged when raters score it (a real-world
+    task, whose emulator scene only approximates the objects), else a failure: a simulated task must prove
+    itself solvable."""
+    assert audit.task is not None and audit.task.spec is not None
+    if audit.task.spec.data.get("scored_by") == "raters":
+        return CheckResult(name, "skip", "not judged: scored by raters, no scripted expert on the emulator")
+    return _result(name, "no scripted expert", [Finding(
+        "the task declares no `expert:`, so nothing shows it can be solved: add a scripted expert (a list of "
+        "skills), or set `scored_by: raters` if people score it from videos (real-world tasks)")])
+
+
 def _solvability(audit: Audit, ctx: Context) -> CheckResult:
+    if not has_expert(audit):
+        return _without_expert("solvability", audit)
     episodes = audit.episodes["expert"]
     wins, n = _rate(episodes)
     figure = f"expert {wins}/{n} ({100 * wins / n:.0f}%)"
@@ -215,6 +234,8 @@ def _not_trivial(audit: Audit, ctx: Context) -> CheckResult:
 
 
 def _horizon(audit: Audit, ctx: Context) -> CheckResult:
+    if not has_expert(audit):
+        return _without_expert("horizon", audit)
     lengths = [e.steps for e in audit.episodes["expert"] if e.success]
     horizon = max(p.horizon for p in audit.plans or [] if not p.error)
     need = auto_horizon(lengths)

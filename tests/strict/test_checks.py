@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 from dojo.compiler.pack_limits import PackLimits
 from dojo.strict.checks import TASK_CHECKS, Audit, Context
@@ -21,8 +22,13 @@ def _episodes(policy: str, outcomes: list[tuple[bool, float, int]]) -> list[Epis
     return [EpisodeRecord(policy, "standard", i, ok, score, steps) for i, (ok, score, steps) in enumerate(outcomes)]
 
 
-def _judge(name: str, **row) -> tuple[str, list[tuple[bool, str]]]:
-    result = CHECK[name].run(Audit(Path("pack"), "t", "t.yaml", **row), CTX)
+def _task(**data) -> SimpleNamespace:
+    """The part of a loaded task the checks read: its spec's data (a scripted expert unless told otherwise)."""
+    return SimpleNamespace(spec=SimpleNamespace(data={"expert": [{"skill": "grasp", "object": "a"}], **data}))
+
+
+def _judge(name: str, task: SimpleNamespace | None = None, **row) -> tuple[str, list[tuple[bool, str]]]:
+    result = CHECK[name].run(Audit(Path("pack"), "t", "t.yaml", task or _task(), **row), CTX)
     return result.status, [(f.warning, f.message) for f in result.findings]
 
 
@@ -65,6 +71,16 @@ def test_zero_credit_is_a_warning_and_any_floor_success_a_failure() -> None:
     status, _ = _judge("not_trivial", episodes={"zero": _episodes("zero", [(False, 0.0, 400)] * 4),
                                                 "random": _episodes("random", [(True, 100.0, 37)] + [(False, 0, 400)] * 3)})
     assert status == "fail"
+
+
+def test_a_task_without_an_expert_fails_solvability_unless_raters_score_it() -> None:
+    for name in ("solvability", "horizon"):
+        status, findings = _judge(name, _task(expert=None), plans=[_plan(0)], episodes={"expert": []})
+        assert status == "fail" and "declares no `expert:`" in findings[0][1]
+        assert _judge(name, _task(expert=None, scored_by="raters"), plans=[_plan(0)],
+                      episodes={"expert": []}) == ("skip", [])
+    ok = _episodes("expert", [(False, 0, 300)] * 20)  # raters do not excuse an expert that is there and fails
+    assert _judge("solvability", _task(scored_by="raters"), episodes={"expert": ok})[0] == "fail"
 
 
 def test_horizon_needs_the_p90_with_a_fifth_to_spare() -> None:
