@@ -422,8 +422,11 @@ def program_step(xp: Any, layout: ProgramLayout, state: dict[str, Array], params
     first = _columns(xp, [ev.first_updates[k] for k in range(layout.n_order)], memory["first"])
     success = success_now & xp.all(reached, axis=-1)
     if layout.stages:
-        weights = xp.asarray(np.asarray(layout.weights, dtype=np.float32))
-        score = 100.0 * (reached.astype(xp.float32) @ weights) / float(sum(layout.weights))
+        # An elementwise sum, not a matmul (GPUs may run float32 matmuls in TF32), clipped: rounding must not
+        # put a full score a hair above 100.
+        weights = np.asarray(layout.weights, dtype=np.float32)
+        got = xp.sum(xp.where(reached, xp.asarray(weights), xp.float32(0.0)), axis=-1)
+        score = xp.minimum(xp.float32(100.0) * got / xp.float32(weights.sum()), xp.float32(100.0))
     else:
         score = 100.0 * success.astype(xp.float32)
     memory = {"press_count": count, "press_down": down, "first": first, "stage_step": stage_step}
