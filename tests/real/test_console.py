@@ -176,6 +176,9 @@ def test_an_operator_runs_and_e_stops_a_trial_and_raters_score_it_blind(console,
             time.sleep(0.001)
         figures.add("console.escape_key_to_estop_at_driver_ms(Playwright key press -> fetch -> safety.estop)",
                     round((home.safety.estop_time - pressed) * 1000, 1))
+        while not (frames := home._emulated.controllers.frames_since(home.safety.estop_time)):
+            time.sleep(0.001)
+        figures.add("console.escape_key_to_hold_on_the_bus_ms", round((frames[0].on_bus - pressed) * 1000, 1))
         page.wait_for_function("document.getElementById('safety').textContent === 'stopped'", timeout=30000)
         returned = float(np.abs(driver.read().joint_pos - driver.home_pose[0]).max())
         page.wait_for_selector(f"#trial-{trial.code} a.video", timeout=60000)

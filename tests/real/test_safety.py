@@ -9,6 +9,9 @@ jump from home), the other limits are loosened. The e-stop test drives the emula
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -176,6 +179,129 @@ def test_estop_holds_refuses_returns_slowly_and_waits_for_the_operator(layer) ->
     assert layer.command(q, grip).refused == "refused_estop" and layer.counters["refused_estop"] == 2
     layer.release()
     assert layer.command(q, grip).sent
+
+
+def test_the_estop_does_not_wait_for_a_command_being_checked(layer) -> None:
+    """The policy's thread is inside a command's checks (holding the check lock) when the e-stop comes: the hold
+    goes out at once, and the command, when its checks end, is refused instead of sent after the hold."""
+    q, grip = layer.driver.home_pose
+    inside, go_on = threading.Event(), threading.Event()
+    place = layer._placement
+
+    def slow_placement(*args):
+        inside.set()
+        go_on.wait()
+        return place(*args)
+
+    layer._placement = slow_placement
+    verdicts = []
+    policy = threading.Thread(target=lambda: verdicts.append(layer.command(q, grip)), daemon=True)
+    policy.start()
+    assert inside.wait(10)
+    estop = threading.Thread(target=layer.estop, daemon=True)
+    estop.start()
+    estop.join(10)
+    assert not estop.is_alive(), "the e-stop waited for the command's checks"
+    assert len(layer.driver.sent) == 2 and layer.state == ESTOP  # the hold, sent twice
+    go_on.set()
+    policy.join(10)
+    assert verdicts[0].refused == "refused_estop" and len(layer.driver.sent) == 2
+
+
+def test_a_command_already_being_sent_is_followed_by_the_estops_hold(layer) -> None:
+    """The policy's command is on its way to the driver when the e-stop comes: the e-stop's first hold does not
+    wait for it, and its second hold comes after it, so the arms end held, not at the policy's target."""
+    q, grip = layer.driver.home_pose
+    target = q.copy()
+    target[0, 0] += 0.01
+    sending, go_on = threading.Event(), threading.Event()
+    send = layer.driver.command
+
+    def slow_send(joint_pos, gripper, speed=1.0):
+        if np.array_equal(joint_pos, target):
+            sending.set()
+            go_on.wait()
+        send(joint_pos, gripper, speed)
+
+    layer.driver.command = slow_send
+    policy = threading.Thread(target=layer.command, args=(target, grip), daemon=True)
+    policy.start()
+    assert sending.wait(10)
+    estop = threading.Thread(target=layer.estop, daemon=True)
+    estop.start()
+    while len(layer.driver.sent) < 1:  # the first hold, sent while the policy's command is still on its way
+        time.sleep(0.001)
+    go_on.set()
+    policy.join(10)
+    estop.join(10)
+    # the first hold (at home, where the arm was), the policy's command, the second hold (the stand-in is
+    # instantly at its target: held there)
+    assert [np.array_equal(sent_q, target) for sent_q, _, _ in layer.driver.sent] == [False, True, True]
+    assert np.array_equal(layer.driver.sent[0][0], q)
+    assert layer.state == ESTOP
+
+
+@pytest.mark.slow
+def test_estop_latency_over_many_presses_with_the_machine_loaded(make_rig, figures) -> None:
+    """The figure the e-stop's bar is about, under load: busy loops in 2 x cores other processes, a policy
+    commanding both arms at 25 Hz; PRESSES e-stops, each released after a moment. Per press, from the call:
+    the first hold frame on the arms' bus (its bus time stamp), and seen by the emulated arm controller (whose
+    thread shares the loaded process and CPUs, as a real arm's controller would not)."""
+    pytest.importorskip("piper_sdk")
+    from dojo.backends.real.piper_driver import PiperDriver
+
+    presses = 60
+    rig = make_rig()
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2 * (os.cpu_count() or 1))]
+    on_bus, seen = [], []
+    try:
+        with PiperDriver(rig.robot, rig.channels, interface="virtual") as driver:
+            driver.connect()
+            safety = SafetyLayer(driver, RobotGeometry(rig.model, rig.robot), rig.config, CONTROL_HZ,
+                                 clock=rig.sim.clock)
+            safety.start()
+            home_q, grip = driver.home_pose
+            target = home_q + np.array([[0.4, 0.2, -0.2, 0.3, 0.2, 0.5], [-0.4, 0.2, -0.2, -0.3, 0.2, -0.5]])
+            done = threading.Event()
+
+            def policy() -> None:
+                while not done.is_set():
+                    safety.command(target, grip)
+                    time.sleep(1.0 / CONTROL_HZ)
+
+            thread = threading.Thread(target=policy)
+            thread.start()
+            rng = np.random.default_rng(0)
+            try:
+                for _ in range(presses):
+                    time.sleep(rng.uniform(0.1, 0.25))
+                    pressed = rig.sim.clock()
+                    safety.estop()
+                    while not (frames := rig.emulator.frames_since(pressed)):
+                        time.sleep(0.0005)
+                    on_bus.append(min(f.on_bus for f in rig.emulator.frames_since(pressed)) - pressed)
+                    seen.append(frames[0].time - pressed)
+                    time.sleep(0.05)
+                    assert safety.state == ESTOP
+                    safety.release()
+            finally:
+                done.set()
+                thread.join()
+                safety.close()
+    finally:
+        for process in load:
+            process.kill()
+            process.wait()
+
+    def summary(values: list[float]) -> dict[str, float]:
+        ms = 1000.0 * np.asarray(values)
+        return {"p50": round(float(np.percentile(ms, 50)), 2), "p99": round(float(np.percentile(ms, 99)), 2),
+                "max": round(float(ms.max()), 2), "presses": presses}
+
+    figures.add(f"safety.estop_under_load_ms({2 * (os.cpu_count() or 1)} busy processes; call -> hold on the bus)",
+                summary(on_bus))
+    figures.add("safety.estop_under_load_ms(call -> seen by the emulated arm controller)", summary(seen))
+    assert len(on_bus) == presses
 
 
 def test_a_new_trial_zeroes_the_counters(layer) -> None:

@@ -20,13 +20,17 @@ queue on its channel at most `rx_buffer` frames long, dropping the oldest, as a 
 
 Imperfections are parameters (`emulator.EmulatorParams`): encoder noise on the joint feedback, a delay before a
 command takes effect, and a probability that any feedback frame is lost. Every command frame's arrival is
-logged on the emulator's clock (`received`), which is how latencies are measured.
+logged on the emulator's clock (`received`), which is how latencies are measured, with the time the bus stamped
+it (when the SDK put it on the bus, for python-can's virtual bus; its reception, for a kernel bus), moved to the
+same clock: the two differ by how late the emulator's thread, standing in for the arm's own controller, got to
+it.
 """
 
 from __future__ import annotations
 
 import collections
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -41,11 +45,13 @@ from dojo.backends.real.realtime_sim import RealTimeSim
 
 @dataclass(frozen=True)
 class ReceivedFrame:
-    """A command frame as the emulator got it: arrival time (emulator clock), arm index, frame id."""
+    """A command frame as the emulator got it: arrival time (emulator clock), arm index, frame id, and the bus's
+    time stamp of it on the emulator clock."""
 
     time: float
     arm: int
     frame_id: int
+    on_bus: float
 
 
 LOW_SPEED_DIVIDER = 10
@@ -73,8 +79,9 @@ class _ArmController:
     def receive(self, now: float) -> list[ReceivedFrame]:
         """Take the frames that arrived, apply those whose delay has passed; return the arrivals."""
         arrived = []
+        wall_to_clock = self.sim.clock() - time.time()
         while (msg := self.bus.recv(timeout=0.0)) is not None:
-            arrived.append(ReceivedFrame(now, self.arm, msg.arbitration_id))
+            arrived.append(ReceivedFrame(now, self.arm, msg.arbitration_id, msg.timestamp + wall_to_clock))
             self.pending.append((now + self.params.command_delay, msg.arbitration_id, bytes(msg.data)))
         while self.pending and self.pending[0][0] <= now:
             _, frame_id, data = self.pending.popleft()
