@@ -2,7 +2,8 @@
 
 The expert knows what the robot could see: where the object is now and how the belt moves (its direction and
 speed are the plan's drawn conveyor, the same motion a camera shows). It waits, gripper open above a point of the
-belt's centre line within its reach and high enough for every item to pass below, until the object comes near;
+belt's centre line within its reach and high enough for every item to pass below (it first rises straight up clear
+of what stands below it, as `retreat` does), until the object comes near;
 then it goes down with its fingers either side of the belt, lets the object ride in between and closes.
 """
 
@@ -15,6 +16,7 @@ import numpy as np
 from dojo.experts.motion import FAST, SLOW, Pose
 from dojo.experts.skills import (
     GRIP_STEPS,
+    PALM,
     SkillContext,
     SkillFailed,
     SkillGen,
@@ -22,6 +24,7 @@ from dojo.experts.skills import (
     grasp_frame,
     grasp_height,
     place_center,
+    retreat,
 )
 
 INTERCEPT = 0.2
@@ -34,6 +37,8 @@ MARGIN = 0.03
 """Room left to each side between the open fingers and the object riding in (m)."""
 ON_BELT = 0.02
 """An object within this of the belt's surface height is on the belt (m)."""
+PALM_CLEARANCE = 0.01
+"""Room between the palm and the top of the object riding in between the fingers (m)."""
 PATIENCE = 5000
 """Control steps the skill waits for the object at most before giving up."""
 
@@ -73,8 +78,11 @@ def catch(ctx: SkillContext, arm: str, obj: str, target: str | None = None) -> S
     offset = float((region_box.center - ctx.scene.box(obj).center) @ d)  # grasp point ahead of the box centre
     width = ctx.scene.width_through(obj, region_box.center, across)
     opening = min(1.0, (width + 2 * MARGIN) / ctx.max_width)
-    point = np.array([*wait_at[:2], grasp_height(ctx, obj)])
+    # the palm clears the object's top: it rides in sideways, where a top-down grasp would come down on it
+    z = max(grasp_height(ctx, obj), ctx.scene.box(obj).top - PALM + PALM_CLEARANCE)
+    point = np.array([*wait_at[:2], z])
     pose = ctx.reachable(a, point, across if across @ ctx.natural_axis(a, point) >= 0 else -across)
+    yield from retreat(ctx, a)  # up clear of what it left below first (a basket's handle it just let go of)
     yield ctx.gripper(a, opening, 1)
     yield ctx.line(a, pose.shifted([0.0, 0.0, HOVER]), FAST, settle=0)
     for _ in range(PATIENCE):  # hover until the object is close

@@ -227,13 +227,15 @@ class SkillContext:
                         container: str | None = None) -> float:
         """TCP height for moving from `start` to `goal` (world points): the carried part (`below_tcp` under the
         TCP) clears by CLEARANCE every object within reach of the straight path; a target container counts with
-        its rim (`top` frame), since the object goes in past its handle or lid, not over it."""
+        its rim (`top` frame), since the object goes in past its handle or lid, not over it, unless the goal
+        lies across the handle from the start (the near side was taken): then it is carried over the handle."""
         tops = [self.scene.table_z]
         for name in self.scene.others(exclude):
             box = self.scene.box(name)
             if _distance_to_segment(box.center[:2], start[:2], goal[:2]) > float(np.max(box.half[:2])) + 0.08:
                 continue
-            if name == container and self.scene.has_site(name, "top"):
+            if name == container and self.scene.has_site(name, "top") and all(
+                    _same_side(b, start[:2], goal[:2]) for b in overhead_parts(self, name)):
                 tops.append(float(self.scene.site(name, "top").center[2]))
             else:
                 tops.append(box.top)
@@ -476,7 +478,8 @@ def open_and_retreat(ctx: SkillContext, arm: int) -> SkillGen:
 def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarray:
     """Where the box centre of `obj` goes for `target`: resting on a surface (a region spot, an object's top, a
     placement annotation) or, for a container, released above its rim at the point of its opening nearest the
-    arm (clear of a handle over the middle, and easiest to reach), to drop in."""
+    arm (easiest to reach), on the side of a handle over the middle that the object comes from (an object off a
+    belt behind a basket is not carried across the handle) and clear of it, to drop in."""
     box = ctx.scene.box(obj)
     height = float(np.abs(box.rot[2]) @ box.half)
     if target in ctx.plan.regions:
@@ -495,15 +498,14 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
     inside = [ctx.scene.box(n) for n in ctx.scene.others((obj, owner))
               if np.all(np.abs(site.rot.T @ (ctx.scene.box(n).center - site.center)) <= site.half + 0.02)]
     floor = float(site.center[2] - site.half[2]) + 0.01
-    rim = ctx.scene.site(owner, "top").center[2] if ctx.scene.has_site(owner, "top") else ctx.scene.box(owner).top
     walls = [b for b in ctx.scene.geom_boxes(owner) if b.top > floor]  # walls, posts, a handle: not the floor
-    overhead = [b for b in walls if b.bottom > rim + 0.01]  # a handle arching over the opening
+    overhead = overhead_parts(ctx, owner)
 
     def near(xy: np.ndarray) -> bool:
-        """On the arm's side of a handle (its narrow axis), else in the half of the opening facing the arm:
-        an object carried across the handle would sweep into it."""
+        """On the side of a handle (its narrow axis) the object comes from, else in the half of the opening
+        facing the arm: an object carried across the handle would sweep into it."""
         if overhead:
-            return all(_same_side(b, xy, base) for b in overhead)
+            return all(_same_side(b, xy, box.center[:2]) for b in overhead)
         return float(np.dot(xy - site.center[:2], base - site.center[:2])) >= 0.0
 
     def grid(span: np.ndarray, n: int) -> list[np.ndarray]:
@@ -537,7 +539,19 @@ def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarr
         best = min(fine or [xy], key=lambda p: key(p, per_metre=1000.0))
         if key(best)[0] == key(xy)[0] and room(best) > room(xy) + 0.002:
             xy = best
-    return np.array([xy[0], xy[1], max(float(site.center[2]), rim + 0.015) + height])
+    return np.array([xy[0], xy[1], max(float(site.center[2]), _rim(ctx, owner) + 0.015) + height])
+
+
+def _rim(ctx: SkillContext, owner: str) -> float:
+    """Height of a container's rim: its `top` frame, else the top of its box."""
+    return float(ctx.scene.site(owner, "top").center[2]) if ctx.scene.has_site(owner, "top") else ctx.scene.box(
+        owner).top
+
+
+def overhead_parts(ctx: SkillContext, owner: str) -> list[Box]:
+    """The parts of a container above its rim (a handle arching over the opening), as world boxes."""
+    rim = _rim(ctx, owner)
+    return [b for b in ctx.scene.geom_boxes(owner) if b.bottom > rim + 0.01]
 
 
 def _same_side(box: Box, a: np.ndarray, b: np.ndarray) -> bool:
