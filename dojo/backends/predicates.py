@@ -157,6 +157,37 @@ def contact_matrix(xp: Any, geom_atom: Array, geom1: Array, geom2: Array, dist: 
     return hits[:, :n_atoms, :n_atoms]
 
 
+def pool_contact_matrix(xp: Any, geom_atom: Array, geom: Array, dist: Array, worldid: Array, count: Array,
+                        n_worlds: int, n_atoms: int) -> Array:
+    """`contact_matrix` of a batch whose contacts share one pool, as MuJoCo Warp keeps them (MJX `impl='warp'`).
+
+    `geom [P, 2]`, `dist [P]` and `worldid [P]` are the pool's rows, of which the first `count` (a scalar or [1]
+    array, Warp's `nacon`) are this step's; later rows are stale and ignored, as are rows of a world outside the
+    batch. Each touching row adds one to its world's (atom, atom) cell with a scatter-add: a one-hot product over
+    worlds, as `contact_matrix` does over rows, would cost pool rows x worlds. Same bool [N, A, A] result.
+    """
+    a = n_atoms + 1
+    filled = xp.arange(dist.shape[0]) < xp.reshape(xp.asarray(count), (-1,))[0]
+    active = filled & (dist <= TOUCH_DISTANCE) & (worldid >= 0) & (worldid < n_worlds)
+    last = geom_atom.shape[0] - 1
+    atom1 = geom_atom[xp.clip(geom[:, 0], 0, last)]
+    atom2 = geom_atom[xp.clip(geom[:, 1], 0, last)]
+    cell = (xp.clip(worldid, 0, n_worlds - 1) * a + atom1) * a + atom2
+    counts = _scatter_add(xp, n_worlds * a * a, cell, active.astype(xp.float32))
+    hits = xp.reshape(counts, (n_worlds, a, a)) > 0
+    hits = hits | xp.swapaxes(hits, -1, -2)
+    return hits[:, :n_atoms, :n_atoms]
+
+
+def _scatter_add(xp: Any, size: int, index: Array, values: Array) -> Array:
+    """A zero vector of `size` with `values` added at `index` (repeats accumulate), in NumPy or JAX."""
+    out = xp.zeros(size, dtype=values.dtype)
+    if hasattr(out, "at"):  # a JAX array: functional update
+        return out.at[index].add(values)
+    xp.add.at(out, index, values)
+    return out
+
+
 def press_down(xp: Any, q: Array, rest: Array, far: Array, was_down: Array) -> Array:
     """Whether each button is down now, from its joint position q, rest position and far range end (all [N, P]),
     with hysteresis on `was_down`."""

@@ -1,8 +1,10 @@
 """MuJoCo Warp on an NVIDIA GPU (`pytest -m gpu`): overflow bits as decoded, overflow detected in a real step,
-and the stream engine stepping the same physics as `Engine(impl='warp')`, bucket by bucket."""
+the stream engine stepping the same physics as `Engine(impl='warp')`, bucket by bucket, the contact pool sorted
+into the contacts MuJoCo finds per world, and the mjx backend running Warp when asked."""
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 from conftest import toy_plan
@@ -83,3 +85,38 @@ def test_too_small_buffers_are_reported_not_dropped_silently(warp_ready, buckets
     assert engine.overflows(), "one contact slot per world for boxes resting on a floor must overflow"
     with pytest.raises(batch.CapacityOverflow):
         engine.check_overflow()
+
+
+def test_the_contact_pool_holds_each_worlds_mujoco_contacts(warp_ready, buckets):
+    """Every geom its own atom: the pool's per-world matrix lies between the pairs MuJoCo (float64, same state)
+    finds clearly touching and those within 0.1 mm, and the boxes resting on the floor are found."""
+    import jax.numpy as jnp
+
+    from dojo.backends.predicates import contact_matrix, pool_contact_matrix
+
+    sizes = [B] * len(buckets)
+    ctrl = [np.full((n, b.model.nu), 0.2, np.float32) for b, n in zip(buckets, sizes)]
+    engine = _run_engine(buckets, sizes, ctrl, 5)
+    engine.check_overflow()
+    for arr, data in zip(engine.arrays, engine.data):
+        ngeom = arr.bucket.model.ngeom
+        atoms = np.arange(ngeom + 1)
+        pool = data._impl
+        got = np.asarray(pool_contact_matrix(jnp, jnp.asarray(atoms), pool.contact__geom, pool.contact__dist,
+                                             pool.contact__worldid, pool.nacon, arr.size, ngeom))
+        assert got.any()
+        for w in range(arr.size):
+            member = arr.bucket.members[w % len(arr.bucket.members)]
+            d = mujoco.MjData(member.model)
+            d.qpos[:] = np.asarray(data.qpos[w], np.float64)
+            mujoco.mj_forward(member.model, d)
+            rows = [r[None, :d.ncon] for r in (d.contact.geom1, d.contact.geom2, d.contact.dist)]
+            sure = contact_matrix(np, atoms, rows[0], rows[1], rows[2] + 1e-4, ngeom)[0]
+            near = contact_matrix(np, atoms, rows[0], rows[1], rows[2] - 1e-4, ngeom)[0]
+            assert np.all(got[w] >= sure) and np.all(got[w] <= near), f"bucket {arr.bucket.key}, world {w}"
+
+
+def test_the_mjx_backend_runs_warp_when_asked_on_an_nvidia_gpu(warp_ready):
+    from dojo.backends.mjx.backend import MjxBackend
+
+    assert MjxBackend(impl="warp").impl == "warp" and MjxBackend(impl="auto").impl == "jax"

@@ -13,9 +13,13 @@ solve the same damped-least-squares IK as the CPU backend, batched on the device
 Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no env of the bucket asks for ee);
 physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
 and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
-backend's `RobotIndex.proprioception`. Predicates read contacts from `mjx.Data.contact`, which only the `jax` implementation lays out per
-environment, so this backend runs `impl='jax'` (`auto` too, with a logged reason, also on an NVIDIA GPU); the `warp`
-implementation serves `Engine` and `StreamEngine` (physics, bench).
+backend's `RobotIndex.proprioception`.
+
+Implementations. `impl='jax'` runs everywhere and is what `auto` chooses; `impl='warp'` (MuJoCo Warp, an NVIDIA GPU
+with mujoco-warp installed) is opt-in, for the reasons in `WARP_OPT_IN`. The two keep contacts differently: `jax` has fixed rows per environment (`Data.contact`),
+Warp one pool for the whole batch whose rows carry their world (`contact__geom`, `contact__dist`,
+`contact__worldid`, filled up to `nacon`), which `pool_contact_matrix` sorts into per-environment contacts. The ee
+modes' IK reads only joint positions and runs MJX's `jax` kinematics under either implementation.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from dojo.backends.base import (END_NONFINITE, Backend, Observation, StepResult,
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
 from dojo.backends.predicate_state import BODY, SITE, StateIndex, gather_state
+from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
@@ -45,21 +50,20 @@ from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_imag
 from dojo.backends.mjx.sharding import Placement, local_devices
 
 log = logging.getLogger(__name__)
-WARP_PENDING = ("predicates read per-environment contacts, which MJX's warp implementation keeps in one pool for "
-                "the whole batch")
-"""Why the backend does not run `impl='warp'` yet (issue 22): the physics bench does."""
+WARP_OPT_IN = ("on the H100 (2026-11-25) warp finished one task's episodes, but an 11-task tick took 265 s to trace "
+               "and compile and then ran at 4-8 interactions/s, and a 2-task run stopped in Warp's CUDA graph "
+               "capture (an allocation while the stream was capturing); use backend.impl=warp to try it")
+"""Why `auto` does not choose Warp for `dojo run` yet (issue 22); `dojo bench sim` measures Warp's physics."""
 
 
 def backend_impl(requested: str | None) -> str:
-    """The implementation the backend runs: `jax`, also for `auto` on an NVIDIA GPU (logged with the reason);
-    an explicit `warp` is refused with it. `dojo bench sim` measures the warp implementation's physics."""
+    """The implementation the backend runs: `jax` for `auto` (logged with `WARP_OPT_IN` where Warp could run),
+    `warp` or `jax` when asked by name (`warp` refused without an NVIDIA GPU and mujoco-warp)."""
     if requested in (None, "", "auto"):
         if choose_impl("auto") == "warp":
-            log.warning("mjx backend: impl=auto runs 'jax', not 'warp': %s", WARP_PENDING)
+            log.warning("mjx backend: impl=auto runs 'jax', not 'warp': %s", WARP_OPT_IN)
         return "jax"
-    if choose_impl(requested) != "jax":
-        raise ValueError(f"the mjx backend cannot run impl='warp' yet: {WARP_PENDING}; use impl=jax or auto")
-    return "jax"
+    return choose_impl(requested)
 
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
@@ -108,8 +112,8 @@ class _DeviceHooks(Hooks):
 
     forward = True
 
-    def __init__(self, programs: dict[str, _Program], robots: dict[str, RobotIndex]):
-        self.programs, self.robots = programs, robots
+    def __init__(self, programs: dict[str, _Program], robots: dict[str, RobotIndex], impl: str):
+        self.programs, self.robots, self.impl = programs, robots, impl
 
     def init_extra(self, arr: BucketArrays) -> Tree:
         return init_memory(jnp, self.programs[arr.bucket.key].layout, arr.size)
@@ -123,7 +127,7 @@ class _DeviceHooks(Hooks):
         q, grip, clipped = A.joint_targets(jnp, actions[:, :joint_dim], q_now, robot.limits, delta=True)
         is_ee = (mode == EE) | (mode == DELTA_EE)
         q_ee, grip_ee, clipped_ee = jax.lax.cond(
-            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE),
+            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE, self.impl),
             lambda: (q, grip, clipped))
         q = jnp.where(is_ee[:, None, None], q_ee, q)
         grip = jnp.where(is_ee[:, None], grip_ee, grip)
@@ -135,14 +139,37 @@ class _DeviceHooks(Hooks):
                 stepping: jax.Array, clipped: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
         program, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
         params = {k: jnp.asarray(v)[member] for k, v in program.params.items()}
-        c = data.contact
+        if self.impl == "warp":  # the pool is sorted into worlds below; no per-environment rows to read
+            geom1 = geom2 = jnp.zeros((arr.size, 0), jnp.int32)
+            dist = jnp.zeros((arr.size, 0), data.qpos.dtype)
+        else:
+            geom1, geom2, dist = data.contact.geom1, data.contact.geom2, data.contact.dist
         state = gather_state(jnp, program.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
-                             data.site_xmat, data.qpos, c.geom1, c.geom2, c.dist, data.qvel)
+                             data.site_xmat, data.qpos, geom1, geom2, dist, data.qvel)
+        if self.impl == "warp":
+            pool = data._impl
+            state["contact"] = pool_contact_matrix(
+                jnp, jnp.asarray(program.index.arrays["geom_atom"]), pool.contact__geom, pool.contact__dist,
+                pool.contact__worldid, pool.nacon, arr.size, program.index.n_atoms)
         new_memory, out = program_step(jnp, program.layout, state, params, memory, steps)
         memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
                               new_memory, memory)
         return memory, {"success": out.success, "score": out.score, "stage_step": out.stage_step,
                         "terms": out.terms, "clipped": clipped, **_proprioception(robot, data)}
+
+
+def _jax_kinematics(arr: BucketArrays, m: Tree, qpos: jax.Array) -> tuple[Tree, Tree, Tree]:
+    """A Warp batch as MJX's `jax` implementation holds it, for the IK: a `jax` model with the members' varying
+    fields (the warp model's rows in the `jax` layout), data holding only the joint positions (all that kinematics
+    and Jacobians read), and the model's `in_axes`. MJX's Jacobian (`mjx.jac`) is written for `jax` data."""
+    model = arr.bucket.model
+    kin = mjx.put_model(model, impl="jax")
+    rows = {name: jnp.reshape(getattr(m, name), (qpos.shape[0],) + np.shape(getattr(kin, name)))
+            for name in arr.bucket.varying if hasattr(kin, name)}
+    in_axes = jax.tree.map(lambda _: None, kin).tree_replace({name: 0 for name in rows})
+    empty = mjx.make_data(model, impl="jax")
+    data = jax.vmap(lambda q: empty.replace(qpos=q))(qpos)
+    return kin.tree_replace(rows), data, in_axes
 
 
 def _ee_in_base(robot: RobotIndex, d: Tree) -> tuple[jax.Array, jax.Array]:
@@ -154,10 +181,10 @@ def _ee_in_base(robot: RobotIndex, d: Tree) -> tuple[jax.Array, jax.Array]:
     return pos, jnp.swapaxes(base_r, -1, -2) @ world_r
 
 
-def _ee_targets(arr: BucketArrays, robot: RobotIndex, m: Tree, data: Tree, actions: jax.Array, delta: jax.Array
-                ) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _ee_targets(arr: BucketArrays, robot: RobotIndex, m: Tree, data: Tree, actions: jax.Array, delta: jax.Array,
+                impl: str) -> tuple[jax.Array, jax.Array, jax.Array]:
     """`ee` / `delta_ee` rows -> arm joint targets [B, 2, J] by batched DLS IK from the measured joints, grippers
-    [B, 2] and clipped counts [B]; `delta` [B] marks the delta_ee rows."""
+    [B, 2] and clipped counts [B]; `delta` [B] marks the delta_ee rows. The IK runs on `jax` kinematics."""
     pos_now, rot_now = _ee_in_base(robot, data)
     quat_now = mat_to_quat(jnp, rot_now)
     quat_now = quat_now * jnp.where(quat_now[..., :1] < 0, -1.0, 1.0)
@@ -183,7 +210,8 @@ def _ee_targets(arr: BucketArrays, robot: RobotIndex, m: Tree, data: Tree, actio
         step = lambda _, q: A.ik_iteration(jnp, fk, q, target_pos, target_rot, lo, hi)[0]
         return jax.lax.fori_loop(0, A.IK_ITERATIONS, step, d_env.qpos[robot.qpos_adr])
 
-    q = jax.vmap(solve, in_axes=(arr.in_axes, 0, 0, 0))(m, data, pos, rot)
+    m_kin, d_kin, in_axes = (m, data, arr.in_axes) if impl == "jax" else _jax_kinematics(arr, m, data.qpos)
+    q = jax.vmap(solve, in_axes=(in_axes, 0, 0, 0))(m_kin, d_kin, pos, rot)
     return q, grip, clipped
 
 
@@ -217,7 +245,9 @@ class _Slot:
 
 
 class MjxBackend(Backend):
-    """Batched MJX backend (`impl` 'jax'; see module docstring for 'warp'), images from the host renderer."""
+    """Batched MJX backend (`impl` 'jax', 'warp' or 'auto', see the module docstring), images from the host
+    renderer. Under `warp` every tick checks MuJoCo Warp's overflow bits: a dropped contact raises
+    `CapacityOverflow` instead of scoring physics that is not the plan's."""
 
     name = "mjx"
 
@@ -279,7 +309,8 @@ class MjxBackend(Backend):
                                     np.int32) for rows in self._rows]
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
-                             {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets})
+                             {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
+                             self.impl)
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
         self.close()
         if self.render_config is not None:
@@ -327,6 +358,8 @@ class MjxBackend(Backend):
         steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
                  for rows in self._rows]
         out = self._engine.tick(self._members, resets, stepping, list(zip(actions, modes)), steps)
+        if self.impl == "warp":
+            self._engine.check_overflow()
         return jax.device_get(out)
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
