@@ -1,10 +1,12 @@
 """The simulated half of `dojo validate --strict`: every plan compiled twice and held at rest, and the policies'
 episodes on them, spread over spawned worker processes, every result kept by plan hash.
 
-A plan's hash covers all its inputs (spec and asset files, compiler and MuJoCo versions, setting, seed), so a
-result kept under it is still the result of that plan: a re-run after fixing one task finds the other tasks'
-results and redoes only what the fix changed. Results are small JSON files beside the plans,
-`<cache>/results/<hash>.json`, written by the parent process only (workers return them).
+A plan's hash covers all its inputs (spec and asset files, compiler and MuJoCo versions, setting, seed), but a
+result also depends on the code that ran it (an expert's skills, the backend), so each record is kept under the
+plan hash *and* a fingerprint of the dojo package's source (`code_fingerprint`): a re-run after fixing one task's
+spec finds the other tasks' results and redoes only what the fix changed, and a re-run after changing a skill
+redoes everything rather than judge the new code by the old code's episodes. Results are small JSON files beside
+the plans, `<cache>/results/<hash>.json`, written by the parent process only (workers return them).
 
 Workers are spawned, never forked (the parent may run a live progress display's thread), and get the spec
 library and the pack folders once, through the pool's initializer.
@@ -12,6 +14,7 @@ library and the pack folders once, through the pool's initializer.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import multiprocessing
 import time
@@ -166,11 +169,21 @@ def run_episode(job: EpisodeJob) -> EpisodeRecord:
 # ---- in the parent --------------------------------------------------------------------------------------------
 
 
-class ResultCache:
-    """Records by plan hash: `<root>/<hash>.json` maps a key (`plan`, or a policy name) to a record."""
+def code_fingerprint(package: Path = Path(__file__).resolve().parents[1]) -> str:
+    """A digest of every Python source file of the dojo package (paths and contents): what ran the episodes."""
+    digest = hashlib.sha256()
+    for file in sorted(package.rglob("*.py")):
+        digest.update(file.relative_to(package).as_posix().encode() + b"\0" + file.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
 
-    def __init__(self, root: Path) -> None:
+
+class ResultCache:
+    """Records by plan hash and code: `<root>/<hash>.json` maps `<key>@<code>` (key: `plan`, or a policy name;
+    code: `code_fingerprint()` unless given) to a record."""
+
+    def __init__(self, root: Path, code: str | None = None) -> None:
         self.root = root
+        self.code = code or code_fingerprint()
 
     def _file(self, digest: str) -> Path:
         return self.root / f"{digest}.json"
@@ -179,12 +192,13 @@ class ResultCache:
         file = self._file(digest)
         if not file.exists():
             return None
-        return json.loads(file.read_text()).get(key)
+        return json.loads(file.read_text()).get(f"{key}@{self.code}")
 
     def put(self, digest: str, key: str, record: Any) -> None:
         file = self._file(digest)
         data = json.loads(file.read_text()) if file.exists() else {}
-        data[key] = asdict(record)
+        data = {k: v for k, v in data.items() if k.split("@")[0] != key}  # other code's record of this key
+        data[f"{key}@{self.code}"] = asdict(record)
         file.parent.mkdir(parents=True, exist_ok=True)
         tmp = file.with_suffix(".tmp")
         tmp.write_text(json.dumps(data, sort_keys=True))
