@@ -12,7 +12,8 @@ LOGIN_PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>RealEval console: log in</title></head>
 <body style="font-family: sans-serif; margin: 3em">
 <h1>RoboDojo RealEval console</h1>
-<p>This console needs its token (printed by <code>dojo console</code> when it started).</p>
+<p>This console needs a token: the operator's (printed by <code>dojo console</code> when it started) or a
+rater's own (from <code>dojo console add-rater NAME</code>).</p>
 <form method="post" action="/login"><input name="token" type="password" id="token" placeholder="token" autofocus>
 <button type="submit" id="login">Log in</button></form>
 </body></html>
