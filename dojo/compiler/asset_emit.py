@@ -170,6 +170,7 @@ def add_asset(world: mujoco.MjSpec, asset: dict[str, Any], name: str, pos: Seque
     em = _Emitter(world, asset, name, scale, rgba, Path(base_dir))
     root = world.worldbody.add_body(name=name, pos=[float(p) for p in pos], quat=[float(q) for q in quat])
     base = asset.get("base", "free" if cls == "rigid" else "fixed")
+    root.mocap = base == "kinematic"  # posed by an actor every step (dojo.backends.demonstrator)
     free_joint = None
     if base == "free":
         free_joint = root.add_freejoint(name=f"{name}/free").name

@@ -145,7 +145,7 @@ def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], ob
                     groups: set[str]) -> list[Problem]:
     """A conveyor's belt must be a region and its items movable objects (not fixtures); an opponent's board an
     object, its pieces groups and the cells of its lines and preference among its cells; a demonstrator's objects
-    movable."""
+    movable and its arm's parts objects of the scene."""
     problems: list[Problem] = []
     for i, actor in enumerate(actors):
         opponent = actor.get("opponent")
@@ -165,6 +165,10 @@ def _actor_problems(actors: list[dict], movable: set[str], regions: set[str], ob
                 if cell not in cells:
                     problems.append((("actors", i, "opponent", *where),
                                      f"'{cell}' is not one of the opponent's cells{did_you_mean(cell, cells)}", False))
+        for part, name in actor.get("demonstrator", {}).get("arm", {}).items():
+            if name not in objects:
+                problems.append((("actors", i, "demonstrator", "arm", part),
+                                 f"unknown object '{name}'{did_you_mean(name, objects)}", False))
         into = str(actor.get("demonstrator", {}).get("into", "")).split("/", 1)[0]
         if into and into not in objects:
             problems.append((("actors", i, "demonstrator", "into"),

@@ -28,7 +28,8 @@ def test_the_demonstrator_moves_its_objects_in_the_drawn_order(demo_plan):
     plan, spec = demo_plan, _spec(demo_plan)
     model = plan.model()
     order = spec["objects"]
-    assert sorted(order) == sorted(n for n in plan.objects if n.startswith("demo_") and n != "demo_basket")
+    others = {"demo_basket", *spec["arm"].values()}
+    assert sorted(order) == sorted(n for n in plan.objects if n.startswith("demo_") and n not in others)
     period = spec["move_steps"] + spec["pause"]
     with MujocoBackend(num_threads=1) as backend:
         backend.load([plan])
@@ -75,3 +76,33 @@ def test_same_order_as_holds_only_for_the_demonstrated_order(demo_plan):
     shown = [partner[d] for d in _spec(plan)["objects"]]
     assert succeeds(shown)
     assert not succeeds(shown[::-1])
+
+
+def test_the_arm_holds_each_object_on_its_way_and_keeps_its_links(demo_plan):
+    """The visible arm (kinematic bodies posed by the actor): its hand's grip frame is at the carried object's top
+    during a move, its links keep their lengths (shoulder fixed, elbow to wrist one forearm), it rests at the end."""
+    plan, spec = demo_plan, _spec(demo_plan)
+    model = plan.model()
+    arm = spec["arm"]
+    period = spec["move_steps"] + spec["pause"]
+    first = spec["objects"][0]
+    height = 2.0 * plan.objects[first]["half_extents"][2]
+    with MujocoBackend(num_threads=1) as backend:
+        backend.load([plan])
+        backend.reset()
+        data = backend._slots[0].data
+        body = lambda name: data.xpos[model.body(plan.objects[name]["body"]).id].copy()  # noqa: E731
+        shoulder = body(arm["upper"])
+        grip = model.site(plan.objects[arm["hand"]]["sites"]["grip"]).id
+        for _ in range(spec["start_step"] + spec["move_steps"] // 2):  # half way through the first move
+            backend.step(np.zeros((1, 14)), mode="delta_joint")
+        top = data.qpos[model.joint(f"{first}/free").qposadr[0]:][:3] + [0.0, 0.0, height]
+        assert np.linalg.norm(data.site_xpos[grip] - top) < 0.03
+        assert np.allclose(body(arm["upper"]), shoulder)
+        assert np.linalg.norm(body(arm["hand"]) - body(arm["forearm"])) == pytest.approx(0.4, abs=1e-3)
+        assert np.linalg.norm(body(arm["forearm"]) - shoulder) == pytest.approx(0.4, abs=1e-3)
+        for _ in range(period * len(spec["objects"])):  # every move done, and the pause after the last
+            backend.step(np.zeros((1, 14)), mode="delta_joint")
+        rest = body(arm["hand"])
+        backend.step(np.zeros((1, 14)), mode="delta_joint")
+        assert np.allclose(body(arm["hand"]), rest) and rest[2] > 0.9  # retracted, up and still
