@@ -77,3 +77,13 @@ def test_the_cylinder_is_locked_until_the_key_is_seated(key_plan):
     assert abs(cylinder_after(plan, path, (0.003, 0.0, 0.028))) < 1e-3
     # seated on the keyway's floor: unlocked, and the torque turns the cylinder (and the key) round
     assert cylinder_after(plan, path, (0.0, 0.0, 0.0005)) > 0.3
+
+
+def test_a_plug_aimed_3_mm_off_does_not_go_in(library, plan_cache):
+    """The tolerance binds: the expert believing the keyway 3 mm from where it is (`dojo.experts.perturbed`) stands
+    the key on the rim, and `plug` gives up rather than forcing it in along the rim."""
+    from dojo.experts.perturbed import PerturbedOracle
+
+    files = plan_files(library, ["insert_key"], 1, plan_cache)["insert_key"]
+    outcomes = run_policy(PerturbedOracle({"distance": 0.003}), files, num_envs=1)
+    assert [o.success for o in outcomes] == [False], outcomes
