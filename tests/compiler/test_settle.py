@@ -52,6 +52,18 @@ def test_an_object_that_keeps_rolling_is_not_at_rest() -> None:
     assert result.seconds <= MAX_SECONDS + 0.1
 
 
+def test_loose_contents_are_at_rest_when_their_centre_is_still() -> None:
+    """A ball spinning in place about the vertical (nothing in a 3-D contact stops that) has not moved: as loose
+    contents it is at rest after the minimum time; an ordinary object turning as fast is still moving."""
+    ball = '<freejoint/><geom type="sphere" size="0.01" pos="0 0 0.01" condim="3"/>'
+    for loose, expect_rest in ((frozenset({"ball"}), True), (frozenset(), False)):
+        model, data = _world(ball)
+        data.qvel[5] = 0.2  # rad/s about z: 1.1 degrees a window, above REST_TURN_DEG
+        result = settle(model, data, {"ball": "thing"}, loose)
+        assert result.at_rest is expect_rest
+        assert result.seconds == pytest.approx(MIN_SECONDS if expect_rest else MAX_SECONDS)
+
+
 @pytest.fixture(scope="module")
 def library() -> SpecLibrary:
     return SpecLibrary.load()
