@@ -8,12 +8,12 @@ is what lets the batched backend put scenes of one task in one bucket.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import mujoco
 
 from dojo.compiler.asset_emit import AssetHandles, add_asset, apply_background, apply_lighting, apply_table_texture
+from dojo.compiler.rest_pose import rest_quat
 from dojo.compiler.robot_emit import RobotHandles, add_robot, apply_physics
 from dojo.compiler.scene_sample import SceneInstance
 from dojo.compiler.spec_library import Spec, SpecLibrary
@@ -28,12 +28,6 @@ class EmittedScene:
     world: mujoco.MjSpec
     robot: RobotHandles
     objects: dict[str, AssetHandles]
-
-
-def yaw_quat(yaw_deg: float) -> list[float]:
-    """Rotation about world z as a [w, x, y, z] quaternion."""
-    half = math.radians(yaw_deg) / 2
-    return [math.cos(half), 0.0, 0.0, math.sin(half)]
 
 
 def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstance) -> EmittedScene:
@@ -59,6 +53,6 @@ def emit_scene(library: SpecLibrary, task: Spec, robot: Spec, scene: SceneInstan
     objects: dict[str, AssetHandles] = {}
     for obj in scene.objects:
         spec = asset(obj.asset)
-        objects[obj.name] = add_asset(world, spec.data, obj.name, obj.pos, yaw_quat(obj.yaw_deg), obj.scale,
-                                      obj.rgba, base_dir=spec.path.parent)
+        objects[obj.name] = add_asset(world, spec.data, obj.name, obj.pos, rest_quat(obj.rest, obj.yaw_deg),
+                                      obj.scale, obj.rgba, base_dir=spec.path.parent)
     return EmittedScene(world, robot_handles, objects)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from dojo.compiler.asset_geometry import asset_bounds
+from dojo.compiler.rest_pose import rested_box
 from dojo.compiler.robot_emit import TABLE_HALF_SIZE, TABLE_TOP_Z
 from dojo.compiler.spec_errors import SpecError
 from dojo.compiler.spec_library import Spec, SpecLibrary
@@ -69,7 +70,7 @@ class PlacedObject:
 
     name: str
     asset: str
-    pos: list[float]            # world position of the asset frame (centre of its footprint, on its support)
+    pos: list[float]            # world position of the asset frame (upright: centre of its footprint, on its support)
     yaw_deg: float
     scale: float
     color: str | None
@@ -78,9 +79,10 @@ class PlacedObject:
     group: str | None = None
     clutter: bool = False
     attributes: dict[str, Any] = field(default_factory=dict)
-    # Half extents [hx, hy, hz] of the scaled asset's box about its frame's vertical axis; the frame is at the
-    # bottom centre, so the object spans z in [pos_z, pos_z + 2 hz] (for predicates and skills).
+    # Half extents [hx, hy, hz] of the scaled asset's box, in its rest pose, about its footprint's centre (upright:
+    # its frame's vertical axis); it spans 2 hz up from its support (for predicates and skills).
     half_extents: list[float] = field(default_factory=list)
+    rest: str = "upright"       # how it lies on its support before the yaw (`dojo.compiler.rest_pose`)
 
 
 @dataclass
@@ -99,7 +101,13 @@ class SceneInstance:
     clutter_requested: int
 
     def to_json(self) -> dict:
-        return asdict(self)
+        """The instance as plain data; an upright object's record leaves out `rest`, as it was before objects could
+        lie, so scenes of standing objects keep their digests."""
+        data = asdict(self)
+        for obj in data["objects"]:
+            if obj["rest"] == "upright":
+                del obj["rest"]
+        return data
 
     def digest(self) -> str:
         """A stable hash of the instance (floats rounded to 1e-9 m), for golden tests and plan provenance."""
@@ -142,6 +150,9 @@ class _Sampler:
         self.colors_taken: dict[tuple[str, ...], set[str]] = {}  # objects sharing a colour list differ
         self.assets_taken: dict[tuple[str, ...], set[str]] = {}  # ... and so do objects sharing a query
         self.made: dict[str, PlacedObject] = {}  # the objects made so far this draw (for `like`)
+        # Per object, the point of it that goes on its footprint centre at support height, from its frame origin
+        # in its rest pose before yaw (`rest_pose.rested_box`); zero for an upright object.
+        self.anchors: dict[str, np.ndarray] = {}
 
     def choose(self, candidates: list[Spec], vary: bool) -> Spec:
         """The first candidate by id, or with `vary` a random one, preferring candidates of this list that no
@@ -212,15 +223,40 @@ class _Sampler:
         yaw = float(self.rng.uniform(*yaw_range)) if yaw_range[0] != yaw_range[1] else float(yaw_range[0])
         b_lo, b_hi = asset_bounds(asset.data, asset.path.parent, scale) if asset.data["class"] in (
             "rigid", "articulated", "cloth") else (np.zeros(3), np.zeros(3))
+        rest = entry.get("rest", "upright")
+        anchor, b_lo, b_hi = rested_box(rest, b_lo, b_hi)
+        b_lo, b_hi = b_lo - anchor, b_hi - anchor
         half = [float(max(-b_lo[i], b_hi[i])) for i in range(2)] + [float(b_hi[2] - b_lo[2]) / 2]
+        self.anchors[name] = anchor
         attributes = {**asset.data.get("attributes", {}), **entry.get("attributes", {})}
         attributes.setdefault("name", asset.data["names"][0])
         if color:
             attributes.setdefault("color", color)
         x, y, z = entry.get("pos", (0.0, 0.0, 0.0))
-        return PlacedObject(name=name, asset=asset.id, pos=[float(x), float(y), float(z) + TABLE_TOP_Z],
-                            yaw_deg=yaw, scale=scale, color=color, rgba=rgba, fixed=fixed,
-                            group=entry.get("group"), attributes=attributes, half_extents=half)
+        obj = PlacedObject(name=name, asset=asset.id, pos=[], yaw_deg=yaw, scale=scale, color=color, rgba=rgba,
+                           fixed=fixed, group=entry.get("group"), attributes=attributes, half_extents=half, rest=rest)
+        self.put(obj, float(x), float(y), float(z) + TABLE_TOP_Z)
+        return obj
+
+    def put(self, obj: PlacedObject, x: float, y: float, z: float) -> None:
+        """Set the frame position that puts the object's footprint centre at (x, y) and its lowest point at
+        height z: its rest pose's anchor, turned by its yaw, is taken off (nothing for an upright object)."""
+        ax, ay = self.turned_anchor(obj)
+        obj.pos = [x - ax, y - ay, z - float(self.anchors[obj.name][2])]
+
+    def turned_anchor(self, obj: PlacedObject) -> tuple[float, float]:
+        """The object's anchor in the ground plane, turned by its yaw."""
+        anchor = self.anchors[obj.name]
+        if not anchor.any():
+            return 0.0, 0.0
+        yaw = math.radians(obj.yaw_deg)
+        return (math.cos(yaw) * float(anchor[0]) - math.sin(yaw) * float(anchor[1]),
+                math.sin(yaw) * float(anchor[0]) + math.cos(yaw) * float(anchor[1]))
+
+    def footprint(self, obj: PlacedObject) -> np.ndarray:
+        """Where the centre of a placed object's footprint is (its frame position when it stands)."""
+        ax, ay = self.turned_anchor(obj)
+        return np.array([obj.pos[0] + ax, obj.pos[1] + ay]) if ax or ay else np.array(obj.pos[:2])
 
     def region_rect(self, region: str | None) -> tuple[np.ndarray, np.ndarray, float]:
         """(low corner, high corner, support height) of a region, or of the usable table top. A region `on` a
@@ -231,7 +267,9 @@ class _Sampler:
         spec = self.scene["regions"][region]
         c, s = np.array(spec["center"], float), np.array(spec["size"], float) / 2
         support = self.fixtures.get(spec.get("on", ""))
-        z = support.pos[2] + 2 * support.half_extents[2] if support else TABLE_TOP_Z
+        z = TABLE_TOP_Z
+        if support:  # its lowest point (frame height plus its anchor's) plus its height
+            z = support.pos[2] + float(self.anchors[support.name][2]) + 2 * support.half_extents[2]
         return c - s, c + s, z
 
     def place(self, objects: list[PlacedObject], entries: list[dict], spacing: float) -> None:
@@ -240,7 +278,7 @@ class _Sampler:
         for _ in range(LAYOUT_RESTARTS):
             self.fixtures = {o.name: o for o, e in zip(objects, entries) if o.fixed and "pos" in e}
             placed: list[tuple[str, np.ndarray, float]] = [
-                (o.name, np.array(o.pos[:2]), _radius(o)) for o, e in zip(objects, entries) if "pos" in e]
+                (o.name, self.footprint(o), _radius(o)) for o, e in zip(objects, entries) if "pos" in e]
             failed: list[tuple[PlacedObject, str | None]] = []
             for obj, entry in zip(objects, entries):
                 if "pos" in entry or "inside" in entry:
@@ -253,7 +291,7 @@ class _Sampler:
                     failed.append((obj, region))
                     continue
                 _, _, z = self.region_rect(region)
-                obj.pos = [float(xy[0]), float(xy[1]), float(z)]
+                self.put(obj, float(xy[0]), float(xy[1]), float(z))
                 placed.append((obj.name, xy, _radius(obj)))
                 if obj.fixed:
                     self.fixtures[obj.name] = obj
@@ -294,7 +332,8 @@ class _Sampler:
                 turn += float(self.rng.uniform(-CONTENT_JITTER, CONTENT_JITTER))
                 rho = ring if per_layer > 1 else 0.0
                 z = centre[2] - half[2] + CONTENT_GAP + layer * place + r - obj.half_extents[2]
-                obj.pos = [float(centre[0] + rho * math.cos(turn)), float(centre[1] + rho * math.sin(turn)), float(z)]
+                x, y = centre[0] + rho * math.cos(turn), centre[1] + rho * math.sin(turn)
+                self.put(obj, float(x), float(y), float(z))
 
     def inside_box(self, container: PlacedObject) -> tuple[np.ndarray, np.ndarray]:
         """World centre and half extents of a placed container's `inside` placement box (scaled, turned by its
@@ -332,7 +371,7 @@ class _Sampler:
             return 0
         pool = sorted(self.library.resolve(self.task, "asset", {"set": "clutter"}), key=lambda s: s.id)
         picks = self.rng.permutation(len(pool))[:count] if count <= len(pool) else self.rng.integers(len(pool), size=count)
-        placed = [(np.array(o.pos[:2]), _radius(o)) for o in objects]
+        placed = [(self.footprint(o), _radius(o)) for o in objects]
         region = self.scene.get("clutter_region")
         for i, k in enumerate(picks):
             asset = pool[int(k)]
@@ -341,7 +380,7 @@ class _Sampler:
             xy = self.sample_xy(region, _radius(obj), placed, spacing)
             if xy is None:
                 continue
-            obj.pos = [float(xy[0]), float(xy[1]), TABLE_TOP_Z]
+            self.put(obj, float(xy[0]), float(xy[1]), TABLE_TOP_Z)
             placed.append((xy, _radius(obj)))
             objects.append(obj)
         return count

@@ -37,7 +37,8 @@ def _object_line(entry: dict[str, Any]) -> str:
     where = f"in region `{entry['region']}`" if "region" in entry else f"at {entry.get('pos')}"
     extras = [f"x{entry['count']}" if entry.get("count", 1) > 1 else "",
               f"group `{entry['group']}`" if "group" in entry else "",
-              f"colour {entry['color']}" if "color" in entry else ""]
+              f"colour {entry['color']}" if "color" in entry else "",
+              "lying on its side" if entry.get("rest") == "side" else ""]
     return f"- `{entry['name']}`: {asset_text}, {where}" + "".join(f", {e}" for e in extras if e)
 
 

@@ -38,6 +38,7 @@ def task_problems(task: dict) -> list[Problem]:
     scene = task["scene"]
 
     seen: set[str] = set()
+    lying: set[str] = set()
     for section in ("fixtures", "objects"):
         for i, entry in enumerate(scene.get(section, [])):
             name = entry["name"]
@@ -59,6 +60,11 @@ def task_problems(task: dict) -> list[Problem]:
             if "inside" in entry and entry["inside"] not in seen - {name}:
                 problems.append((("scene", section, i, "inside"), f"'inside' names '{entry['inside']}', which is not "
                                  f"an object listed before this one{did_you_mean(entry['inside'], seen)}", False))
+            elif "inside" in entry and entry["inside"] in lying:  # its `inside` box would lie on its side too
+                problems.append((("scene", section, i, "inside"), f"'inside' names '{entry['inside']}', which lies on "
+                                 "its side (rest: side): contents go into an upright container", False))
+            if entry.get("rest") == "side":
+                lying.add(name)
     for name, region in scene.get("regions", {}).items():
         if "on" in region and region["on"] not in objects:
             problems.append((("scene", "regions", name, "on"),
