@@ -88,6 +88,73 @@ def test_a_missing_realsense_is_reported_not_a_crash() -> None:
             RealSenseCamera("head", "", 640, 480)
 
 
+def test_realsense_depth_is_aligned_to_colour_in_millimetres_as_the_simulator_gives_it() -> None:
+    """A synthetic frameset through the SDK's own path (a `software_device` with a Z16 depth and an RGB8 colour
+    stream, a D405's 0.1 mm depth units, frames matched by `rs.syncer`) into the camera's frame reader: the depth
+    comes aligned to colour as `<camera>_depth`, uint16 millimetres like the simulator's, 0 kept as no depth."""
+    rs = pytest.importorskip("pyrealsense2")
+    from dojo.backends.real.realsense_cameras import DepthToColour, camera_frames
+
+    width, height, units = 64, 48, 0.0001
+    device = rs.software_device()
+    sensors = {"depth": device.add_sensor("Depth"), "color": device.add_sensor("Color")}
+    intrinsics = rs.intrinsics()
+    intrinsics.width, intrinsics.height, intrinsics.ppx, intrinsics.ppy = width, height, width / 2, height / 2
+    intrinsics.fx = intrinsics.fy = 50.0
+    intrinsics.model, intrinsics.coeffs = rs.distortion.none, [0.0] * 5
+    profiles = {}
+    for uid, (kind, fmt, bpp) in enumerate((("depth", rs.format.z16, 2), ("color", rs.format.rgb8, 3))):
+        stream = rs.video_stream()
+        stream.type, stream.index, stream.uid, stream.fps = getattr(rs.stream, kind), 0, uid, 30
+        stream.width, stream.height, stream.bpp, stream.fmt, stream.intrinsics = width, height, bpp, fmt, intrinsics
+        profiles[kind] = sensors[kind].add_video_stream(stream)
+    sensors["depth"].add_read_only_option(rs.option.depth_units, units)
+    same_place = rs.extrinsics()
+    same_place.rotation, same_place.translation = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], [0.0, 0.0, 0.0]
+    profiles["depth"].register_extrinsics_to(profiles["color"], same_place)
+    device.create_matcher(rs.matchers.dlr_c)
+    syncer = rs.syncer()
+    for kind in ("depth", "color"):
+        sensors[kind].open(profiles[kind])
+        sensors[kind].start(syncer)
+    raw = np.tile(np.arange(width, dtype=np.uint16) * 100 + 5000, (height, 1))  # 500.0 .. 1130.0 mm
+    raw[:4, :4] = 0
+    colour = np.zeros((height, width, 3), np.uint8)
+    colour[..., 1] = 200
+    for number in range(1, 3):  # the syncer hands on a matched pair once the next frames arrive
+        for kind, pixels, bpp in (("depth", raw, 2), ("color", colour, 3)):
+            frame = rs.software_video_frame()
+            frame.pixels, frame.bpp, frame.stride = pixels, bpp, width * bpp
+            frame.timestamp, frame.frame_number, frame.domain = number * 33.3, number, rs.timestamp_domain.hardware_clock
+            frame.profile = profiles[kind].as_video_stream_profile()
+            sensors[kind].on_video_frame(frame)
+    frameset = syncer.wait_for_frames(5000)
+    while frameset.size() < 2:
+        frameset = syncer.wait_for_frames(5000)
+    scale = sensors["depth"].get_option(rs.option.depth_units)  # what get_depth_scale() reads on a device
+    frames = camera_frames("head", frameset, DepthToColour(scale))
+    assert set(frames) == {"head", "head_depth"}
+    depth = frames["head_depth"]
+    assert depth.dtype == np.uint16 and depth.shape == (height, width)
+    seen = depth > 0  # alignment reprojects every pixel: a few at the image's edge are left without depth
+    assert seen.mean() > 0.9 and not seen[:4, :4].any()
+    assert np.array_equal(depth[seen], raw[seen] // 10)  # 0.1 mm units -> mm, pixel for pixel
+    assert frames["head"].shape == (height, width, 3) and (frames["head"][..., 1] == 200).all()
+    for sensor in sensors.values():
+        sensor.stop()
+        sensor.close()
+
+
+def test_depth_from_a_usb_camera_is_refused_and_a_missing_depth_realsense_is_named() -> None:
+    from dojo.backends.real.cameras import open_cameras
+
+    with pytest.raises(CameraError, match=r"cameras \['left_wrist'\]: USB cameras \(opencv\) give RGB only"):
+        open_cameras({"left_wrist": ("opencv", "0")}, 640, 480, True, None)
+    pytest.importorskip("pyrealsense2")
+    with pytest.raises(CameraError, match=r"camera 'head' \(RealSense serial '000000000000'\): not found"):
+        open_cameras({"head": ("realsense", "000000000000")}, 640, 480, True, None)
+
+
 def test_backend_cameras_chooses_each_cameras_source_and_the_emulator_is_the_default() -> None:
     names = ("head", "left_wrist", "right_wrist")
     assert parse_sources("emulator", names) == dict.fromkeys(names, ("emulator", ""))

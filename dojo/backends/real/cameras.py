@@ -4,8 +4,8 @@ A `CameraSource` delivers the newest frame of each camera it serves (RGB uint8, 
 never blocking on a late camera: a camera with no new frame in time delivers its previous one again and counts
 it in `dropped`, as the emulator's cameras do. Sources: the emulator's rendered cameras (`EmulatedCameras`), a
 USB camera through OpenCV/V4L2 (`opencv_cameras`, which also reads video files), an Intel RealSense
-(`realsense_cameras`). The makers' packages (opencv-python-headless, pyrealsense2) are the `real` extra and are
-imported only when a camera of theirs is opened.
+(`realsense_cameras`, colour and aligned depth). The makers' packages (opencv-python-headless, pyrealsense2) are
+the `real` extra and are imported only when a camera of theirs is opened.
 
 `backend.cameras` chooses per camera: `emulator` (the default: every camera rendered by the emulator, which only
 `backend.driver=emulator` has), or a map from camera name to `opencv:<index or device path or file>`,
@@ -108,9 +108,10 @@ def open_cameras(sources: Mapping[str, tuple[str, str]], width: int, height: int
     from dojo.backends.real.opencv_cameras import OpenCVCamera
     from dojo.backends.real.realsense_cameras import RealSenseCamera
 
-    hardware = [n for n, (kind, _) in sources.items() if kind != EMULATOR]
-    if depth and hardware:
-        raise CameraError(f"cameras {hardware}: depth is rendered by the emulator only; hardware cameras give RGB")
+    colour_only = [n for n, (kind, _) in sources.items() if kind == "opencv"]
+    if depth and colour_only:
+        raise CameraError(f"cameras {colour_only}: USB cameras (opencv) give RGB only; depth comes from the "
+                          "emulator or a RealSense (realsense:<serial>)")
     emulated_names = [n for n, (kind, _) in sources.items() if kind == EMULATOR]
     if emulated_names and emulated is None:
         raise CameraError(f"cameras {emulated_names} have no hardware source: name each in backend.cameras, e.g. "
@@ -123,7 +124,7 @@ def open_cameras(sources: Mapping[str, tuple[str, str]], width: int, height: int
             if kind == "opencv":
                 opened.append(OpenCVCamera(name, device, width, height))
             elif kind == "realsense":
-                opened.append(RealSenseCamera(name, device, width, height))
+                opened.append(RealSenseCamera(name, device, width, height, depth))
     except BaseException:
         for source in opened:
             source.close()
