@@ -16,6 +16,10 @@ open only the rater pages: `add-rater` issues one and keeps its hash in the rate
 listens on 127.0.0.1 unless `host=` says otherwise: it commands a robot, so put it on a network only behind
 your lab's own access control.
 
+The e-stop has a process of its own (for the PiPER, emulated or not), listening on `estop_port` (default: the
+console's port + 1) of the same host: the page's E-STOP button and Escape key go there, so a press holds the arms
+without waiting for the console's own process.
+
 `dojo console scores STORE` prints the raters' verdicts by policy and task: the one place policies are named.
 """
 
@@ -33,10 +37,12 @@ from dojo.evaluation.evaluate import run_id_for
 
 DEFAULTS: dict[str, Any] = {
     "suite": None, "packs": [], "tasks": None, "episodes": None, "seeds": None, "plans": None,
-    "policy": {"name": "zero"}, "backend": {"name": "real", "driver": "emulator", "can": None, "emulator": {}},
-    "width": None, "height": None, "host": "127.0.0.1", "port": 8787, "token": None, "out": None, "layouts": None,
-    "raters": None,
+    "policy": {"name": "zero"},
+    "backend": {"name": "real", "driver": "emulator", "can": None, "emulator": {"bus": "dojo_host"}},
+    "width": None, "height": None, "host": "127.0.0.1", "port": 8787, "estop_port": None, "token": None,
+    "out": None, "layouts": None, "raters": None,
 }
+"""The emulator's buses are `dojo_host` ones, which the e-stop's own process can reach (`dojo.realeval.estop`)."""
 
 
 def console_config(argv: list[str]) -> Any:
@@ -111,7 +117,7 @@ def console_main(argv: list[str]) -> int:
         return _manage_rater(argv[0], argv[1:])
     import uvicorn
 
-    from dojo.realeval.app import create_app
+    from dojo.realeval.app import COOKIE, create_app
     from dojo.realeval.raters import RaterRegistry, default_raters_file
 
     cfg = console_config(argv)
@@ -123,6 +129,8 @@ def console_main(argv: list[str]) -> int:
     if not raters.names():
         print(f"no raters in {raters.path} yet: `dojo console add-rater NAME` issues a rater's token", flush=True)
     session = build_session(cfg)
+    estop_port = int(cfg.estop_port) if cfg.estop_port is not None else int(cfg.port) + 1
+    session.serve_estop(str(token), COOKIE, str(cfg.host), estop_port)
     try:
         print(f"RealEval console: http://{cfg.host}:{cfg.port}/  ({len(session.trials)} trials; results "
               f"{session.store_path}; raters {raters.path})", flush=True)

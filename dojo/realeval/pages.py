@@ -54,7 +54,7 @@ alignment <span id="alignment">-</span></p>
 <table id="trials"><thead><tr><th>trial</th><th>task</th><th>#</th><th>status</th><th>ended</th>
 <th>steps</th><th>video</th></tr></thead><tbody></tbody></table>
 <script>
-const cameras = new Set(); let current = null; let trials = [];
+const cameras = new Set(); let current = null; let trials = []; let estopPort = null;
 const $ = (id) => document.getElementById(id);
 async function post(path) {
   const r = await fetch(path, {method: 'POST'});
@@ -98,7 +98,7 @@ async function refreshAlignment() {
 function connect() {
   const ws = new WebSocket(`${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws/state`);
   ws.onmessage = (m) => {
-    const s = JSON.parse(m.data); current = s.trial;
+    const s = JSON.parse(m.data); current = s.trial; estopPort = s.estop_port;
     $('safety').textContent = s.safety; $('step').textContent = s.step;
     $('home').textContent = s.from_reset_pose_rad ?? '?'; $('current').textContent = current ? current.code : 'none';
     if (s.error) $('error').textContent = s.error;
@@ -110,8 +110,17 @@ $('reset').onclick = () => { const c = selected(); if (c) post(`/api/trials/${c}
 $('layout').onclick = () => { const c = selected(); if (c) post(`/api/trials/${c}/layout`); };
 $('start').onclick = () => { const c = selected(); if (c) post(`/api/trials/${c}/start`); };
 $('stop').onclick = () => post('/api/stop');
-$('estop').onclick = () => post('/api/estop');
-document.addEventListener('keydown', (e) => { if (e.key === 'Escape') { e.preventDefault(); post('/api/estop'); } });
+async function estop() {  // to the e-stop's own process when there is one (it holds without this server)
+  if (estopPort) {
+    try {
+      const r = await fetch(`${location.protocol}//${location.hostname}:${estopPort}/estop`, {method: 'POST', credentials: 'include'});
+      if (r.ok) { $('error').textContent = ''; return; }
+    } catch (e) { /* not answering: the console's own e-stop below */ }
+  }
+  post('/api/estop');
+}
+$('estop').onclick = estop;
+document.addEventListener('keydown', (e) => { if (e.key === 'Escape') { e.preventDefault(); estop(); } });
 fetch('/api/state').then(r => r.json()).then(s => { for (const c of s.cameras || []) ensureView(c); });
 connect(); refreshTrials();
 setInterval(refreshTrials, 1000); setInterval(refreshViews, 300); setInterval(refreshAlignment, 1000);

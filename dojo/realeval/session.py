@@ -5,7 +5,9 @@ the operator's Reset (lay the next trial's scene out: release an e-stop, put the
 emulator also puts the objects where the plan says) and Start (run the trial through the ordinary evaluation loop,
 `dojo.evaluation.evaluate`, into the results store, with a video of every camera) are queued to that thread, so
 the cameras are only ever rendered from it. Stop and E-stop act at once from any thread: the backend ends the
-trial at its next step, and an e-stop holds the arms, then returns them slowly to the reset pose.
+trial at its next step, and an e-stop holds the arms, then returns them slowly to the reset pose. With
+`serve_estop()`, the e-stop also has a process of its own (`dojo.realeval.estop`), started when the robot
+connects, which holds the arms without waiting for this one.
 
 Blindness: each trial has a `code` drawn from a secret of the session, and nothing the session shows (trial
 list, state, rater pages) names the policy or the run, whose id and folder do; the results store keeps both, and
@@ -31,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from dojo.backends.real.piper_driver import PiperDriver
 from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import Plan
 from dojo.evaluation.episode import EpisodeResult
@@ -39,6 +42,7 @@ from dojo.evaluation.evaluate import evaluate
 from dojo.evaluation.policy_link import PolicyLink
 from dojo.evaluation.recorder import EpisodeRecorder
 from dojo.evaluation.results_store import ResultsStore
+from dojo.realeval.estop import EstopProcess
 
 QUEUED, READY, RUNNING, DONE = "queued", "ready", "running", "done"
 
@@ -122,6 +126,8 @@ class ConsoleSession:
         self.step = 0
         self.error: str | None = None
         self._plans: dict[Path, Plan] = {}
+        self._estop_settings: tuple[str, str, str, int] | None = None
+        self.estop_process: EstopProcess | None = None
         self._work: Queue[Callable[[], None] | None] = Queue()
         self._thread = threading.Thread(target=self._drive, name="dojo-console-robot", daemon=True)
         self._thread.start()
@@ -158,6 +164,11 @@ class ConsoleSession:
     def estop(self) -> float:
         """Disable policy control now and return the arms slowly to the reset pose; the time it took hold."""
         return self.backend.safety.estop() if self.backend.safety is not None else time.monotonic()
+
+    def serve_estop(self, token: str, cookie: str, host: str, port: int) -> None:
+        """Give the e-stop its own process once the robot is connected, if its driver speaks on CAN buses a
+        second connection can reach (PiPER): presses with `token` (header or login `cookie`) on host:port."""
+        self._estop_settings = (token, cookie, host, port)
 
     @property
     def running(self) -> bool:
@@ -211,7 +222,8 @@ class ConsoleSession:
         out: dict[str, Any] = {"trial": None if self.current is None else self.current.public(), "step": self.step,
                                "cameras": list(self.cameras),
                                "safety": "disconnected" if safety is None else safety.state,
-                               "counters": {} if safety is None else dict(safety.counters), "error": self.error}
+                               "counters": {} if safety is None else dict(safety.counters), "error": self.error,
+                               "estop_port": None if self.estop_process is None else self.estop_process.port}
         driver = getattr(self.backend, "_driver", None)
         if driver is not None:
             joints = driver.read().joint_pos
@@ -224,6 +236,8 @@ class ConsoleSession:
         policy."""
         if self.running:
             self.stop()
+        if self.estop_process is not None:
+            self.estop_process.close()
         self._work.put(self.backend.close)
         self._work.put(None)
         self._thread.join(timeout=60)
@@ -252,11 +266,20 @@ class ConsoleSession:
         plan = self.plan(trial.item)
         if self.backend.num_envs == 0:
             self.backend.load([plan])
+            self._start_estop_process()
         self._seen(self.backend.reset([0], [plan])[0])
         if self.current is not None and self.current is not trial and self.current.status == READY:
             self.current.status = QUEUED  # its scene is no longer the one laid out
         self.current, self.error = trial, None
         trial.status = READY
+
+    def _start_estop_process(self) -> None:
+        driver = getattr(self.backend, "_driver", None)
+        if self._estop_settings is None or not isinstance(driver, PiperDriver) or self.backend.safety is None:
+            return
+        token, cookie, host, port = self._estop_settings
+        self.estop_process = EstopProcess(driver, token, cookie, host, port, on_press=lambda _: self.estop())
+        self.backend.safety.remote_halt = self.estop_process.halt
 
     def _run(self, trial: Trial) -> None:
         progress = _Progress()

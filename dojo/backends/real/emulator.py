@@ -1,8 +1,9 @@
 """The emulated robot, assembled: the real-time world, the arms' controllers on their buses, the cameras.
 
 `EmulatedRobot` is what `backend.driver=emulator` runs against: a robot whose configuration names the `piper`
-driver (PiPER, PiPER X) gets PiPER controllers on two python-can virtual buses (channel names unique to this
-instance, as the SDK keeps one interface per channel name per process), and `driver()` is the same
+driver (PiPER, PiPER X) gets PiPER controllers on two python-can buses (`virtual`, or `dojo_host` to reach them
+from other processes; channel names unique to this instance, as the SDK keeps one interface per channel name per
+process), and `driver()` is the same
 `PiperDriver` hardware uses, pointed at those buses. A robot whose protocol the emulator does not speak (the
 ARX X5, driver `arx_x5`) is driven at joint level (`JointLevelDriver`).
 """
@@ -41,6 +42,9 @@ class EmulatorParams:
     """Rate of the arm's periodic feedback (the PiPER's is 200 Hz)."""
     rx_buffer: int = 512
     """Frames a reader's queue on a virtual channel holds before the oldest are dropped."""
+    bus: str = "virtual"
+    """python-can interface of the PiPER's buses: `virtual` (this process only) or `dojo_host` (shared with
+    other processes of the machine, as the console's e-stop process needs: `host_can`)."""
     seed: int = 0
 
 
@@ -60,7 +64,7 @@ class EmulatedRobot:
             from dojo.backends.real.piper_emulator import PiperCanEmulator
 
             self.channels = tuple(f"dojo-emulator-{uuid.uuid4().hex[:8]}-{side}" for side in ("left", "right"))
-            self.controllers = PiperCanEmulator(self.sim, self.channels, params=params)
+            self.controllers = PiperCanEmulator(self.sim, self.channels, interface=params.bus, params=params)
         self.sim.start()
 
     def driver(self) -> Driver:
@@ -69,7 +73,7 @@ class EmulatedRobot:
         if self.config.driver == "piper":
             from dojo.backends.real.piper_driver import PiperDriver
 
-            return PiperDriver(self.robot, self.channels, interface="virtual")
+            return PiperDriver(self.robot, self.channels, interface=self.params.bus)
         from dojo.backends.real.joint_level_driver import JointLevelDriver
 
         return JointLevelDriver(self.sim, self.robot, self.params.encoder_noise, self.params.seed)

@@ -46,6 +46,7 @@ class PiperDriver(Driver):
         if len(channels) != 2:
             raise ValueError(f"a bimanual PiPER has one CAN bus per arm; got channels {list(channels)}")
         self.channels, self.interface, self.connect_timeout = tuple(channels), interface, connect_timeout
+        self.robot = dict(robot)
         self._home, self.max_width = home_of(robot)
         self._arms: list[Any] = []
 
@@ -53,7 +54,9 @@ class PiperDriver(Driver):
     def home_pose(self) -> tuple[np.ndarray, np.ndarray]:
         return self._home[0].copy(), self._home[1].copy()
 
-    def connect(self) -> None:
+    def connect(self, enable: bool = True) -> None:
+        """As `Driver.connect`; with `enable=False` only listen until the arms report (a second connection to
+        arms another process drives, as the console's e-stop process is: it changes nothing until it holds)."""
         from piper_sdk import C_PiperInterface_V2
 
         started, deadline = time.time(), time.monotonic() + self.connect_timeout
@@ -66,7 +69,7 @@ class PiperDriver(Driver):
                 arm.CreateCanBus(channel, bustype=self.interface, judge_flag=self.interface == "socketcan")
             arm.ConnectPort()
             self._arms.append(arm)
-        for arm, channel in zip(self._arms, self.channels):
+        for arm, channel in zip(self._arms, self.channels if enable else ()):
             while not arm.EnablePiper():
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"PiPER on {channel}: motors not enabled after {self.connect_timeout} s")

@@ -26,6 +26,11 @@ sent, and sends the hold again, so that no command of the policy's can follow it
 that holds its lock while the OS or the GIL has it waiting would otherwise delay the e-stop by that much (once
 253 ms on the shared 2-core machine, where the hold itself goes out in about a millisecond).
 
+An e-stop may also come from another process with a connection of its own to the arms (the console's,
+`dojo.realeval.estop`): it raises `remote_halt`, a flag shared with this process, before it sends its hold, so
+that from then on every command is refused here as after `estop()`, and then says so, on which the console calls
+`estop()` (which holds again and begins the return).
+
 Every clipped or refused command is counted per trial (`counters`, names in COUNTERS), for the operator
 console and the trial's record; `new_trial()` zeroes them.
 """
@@ -36,6 +41,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -86,11 +92,14 @@ class SafetyLayer:
         self._prev_q = self._prev_v = np.zeros_like(self.joint_lo)  # set at rest by the first command
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.remote_halt: Any = None
+        """A flag shared with another process (e.g. a `multiprocessing` Value): true while its e-stop is in
+        force (see the module docstring)."""
 
     @property
     def halted(self) -> bool:
         """An e-stop is in force (holding, returning, or stopped at the reset pose) until `release()`."""
-        return self._halt.is_set()
+        return self._halt.is_set() or bool(self.remote_halt is not None and self.remote_halt.value)
 
     @property
     def state(self) -> str:
@@ -110,8 +119,10 @@ class SafetyLayer:
     def release(self) -> None:
         """The operator's go-ahead after an e-stop: accept commands again, from where the arms are then."""
         with self._lock, self._send_lock:
-            self._run_state, self.estop_time, self._last_command = RUNNING, None, None
+            self._run_state, self._halt_state, self.estop_time, self._last_command = RUNNING, ESTOP, None, None
             self._halt.clear()
+            if self.remote_halt is not None:
+                self.remote_halt.value = 0
 
     # ---- commands ----
 
