@@ -123,12 +123,16 @@ def test_a_press_holds_through_the_process_and_the_console_is_told(armed) -> Non
 
 
 @pytest.mark.slow
-def test_press_to_hold_on_the_bus_with_the_machine_loaded(armed, figures) -> None:
-    """The e-stop bar's figure: busy loops in 2 x cores other processes, a pure-Python thread keeping this (the
+@pytest.mark.parametrize("path", ["own_process", "event_loop"])
+def test_press_to_hold_on_the_bus_with_the_machine_loaded(armed, figures, path) -> None:
+    """The e-stop bar's figure: busy loops in 2 x cores other processes, two pure-Python threads keeping this (the
     console's) process's interpreter lock busy beside the 25 Hz policy; PRESSES HTTP presses from a client
     process, each released after a moment. Per press, from the client's time stamp before its request: the first
-    command frame on the arms' bus after the process raised the halt flag (its bus time stamp)."""
+    command frame on the arms' bus at or after the halt (its bus time stamp). `own_process`: the e-stop process;
+    `event_loop`, for comparison: an endpoint on an event loop in this process calling the safety layer's
+    e-stop, as the console app's `/api/estop` does."""
     rig, safety, process, told = armed
+    url = f"http://127.0.0.1:{process.port}/estop" if path == "own_process" else _event_loop_endpoint(safety)
     presses = 60
     busy = threading.Event()
 
@@ -142,8 +146,8 @@ def test_press_to_hold_on_the_bus_with_the_machine_loaded(armed, figures) -> Non
     for thread in hogs:
         thread.start()
     try:
-        client = subprocess.Popen([sys.executable, "-c", CLIENT, f"http://127.0.0.1:{process.port}/estop", TOKEN,
-                                   str(presses)], stdout=subprocess.PIPE, text=True)
+        client = subprocess.Popen([sys.executable, "-c", CLIENT, url, TOKEN, str(presses)], stdout=subprocess.PIPE,
+                                  text=True)
         for line in client.stdout:
             press = json.loads(line)
             deadline = time.monotonic() + 10
@@ -170,10 +174,32 @@ def test_press_to_hold_on_the_bus_with_the_machine_loaded(armed, figures) -> Non
                 "max": round(float(ms.max()), 2), "presses": len(values)}
 
     busy_n = 2 * (os.cpu_count() or 1)
-    figures.add(f"estop_process.press_to_hold_on_the_bus_ms({busy_n} busy processes; HTTP press -> first frame)",
+    figures.add(f"estop.{path}.press_to_hold_on_the_bus_ms({busy_n} busy processes; HTTP press -> first frame)",
                 summary(latencies))
-    figures.add("estop_process.press_to_hold_sent_ms(HTTP press -> the process's hold sent)", summary(held))
+    figures.add(f"estop.{path}.press_to_hold_sent_ms(HTTP press -> the hold sent)", summary(held))
     assert len(latencies) == presses
+
+
+def _event_loop_endpoint(safety: SafetyLayer) -> str:
+    """`POST /estop` on a uvicorn event loop in this process, calling `safety.estop()` on the loop as the console
+    app's `/api/estop` does (the server thread lives until the test process ends)."""
+    uvicorn = pytest.importorskip("uvicorn")
+    from fastapi import FastAPI
+
+    app = FastAPI()
+
+    @app.post("/estop")
+    async def estop() -> dict[str, float]:
+        halted = safety.estop()
+        return {"halted_at": halted, "held_at": time.monotonic()}
+
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning"))
+    threading.Thread(target=server.run, daemon=True).start()
+    deadline = time.monotonic() + 30
+    while not server.started and time.monotonic() < deadline:
+        time.sleep(0.05)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    return f"http://127.0.0.1:{port}/estop"
 
 
 def _sent_since(rig, t: float) -> list[float]:

@@ -114,6 +114,10 @@ class HostBus(can.BusABC):
         super().shutdown()
         self._entry.unlink(missing_ok=True)
         self._socket.close()
+        try:
+            self._folder.rmdir()  # the channel's last bus: leave no folder behind
+        except OSError:
+            pass  # other buses are still on it
 
 
 def _alive(pid: int) -> bool:
