@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import secrets
 import threading
 import time
@@ -46,13 +47,14 @@ class EstopProcess:
         self.halt = context.Value("b", 0, lock=False)
         ready, ready_in = context.Pipe(duplex=False)
         self._presses, presses_in = context.Pipe(duplex=False)
+        lifeline, self._lifeline = context.Pipe(duplex=False)  # the process ends when this end closes
         self._process = context.Process(
             target=_serve, name="dojo-console-estop", daemon=True,
             args=(driver.robot, driver.channels, driver.interface, token, cookie, host, port, self.halt, ready_in,
-                  presses_in))
+                  presses_in, lifeline))
         self._process.start()
-        ready_in.close()
-        presses_in.close()
+        for end in (ready_in, presses_in, lifeline):
+            end.close()
         if not ready.poll(START_TIMEOUT_S):
             self._process.terminate()
             raise TimeoutError(f"the console's e-stop process did not start in {START_TIMEOUT_S} s")
@@ -77,11 +79,14 @@ class EstopProcess:
         self._process.terminate()
         self._process.join(timeout=10)
         self._presses.close()
+        self._lifeline.close()
 
 
 def _serve(robot: Mapping[str, Any], channels: Sequence[str], interface: str, token: str, cookie: str, host: str,
-           port: int, halt: Any, ready: Any, presses: Any) -> None:
-    """The process: connect to the arms, listen, and answer presses until terminated."""
+           port: int, halt: Any, ready: Any, presses: Any, lifeline: Any) -> None:
+    """The process: connect to the arms, listen, and answer presses until terminated, or until the console's
+    process has gone (killed, it cannot terminate this one: the end of `lifeline` it held closes instead)."""
+    threading.Thread(target=_end_with_the_console, args=(lifeline,), daemon=True).start()
     try:
         driver = PiperDriver(robot, channels, interface)
         driver.connect(enable=False)
@@ -91,6 +96,14 @@ def _serve(robot: Mapping[str, Any], channels: Sequence[str], interface: str, to
         return
     ready.send(server.server_address[1])
     server.serve_forever()
+
+
+def _end_with_the_console(lifeline: Any) -> None:
+    try:
+        lifeline.recv()
+    except (EOFError, OSError):
+        pass
+    os._exit(0)
 
 
 def _press_handler(driver: PiperDriver, token: str, cookie: str, halt: Any, presses: Any) -> type:
