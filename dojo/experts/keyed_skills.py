@@ -24,9 +24,11 @@ from dojo.experts.skills import (
     SkillGen,
     carry_to,
     free_other_arm,
+    give_up_fit,
     grasp_frame,
     grasp_height,
     open_and_retreat,
+    pushed_in,
 )
 
 PLUG_LEAD = 0.004
@@ -40,11 +42,6 @@ for a degree of attitude); then a tip found farther than PLUG_AIM_TOL (m) from i
 PLUG_AIMS times, before it goes in."""
 PLUG_SPEED = 0.03
 """Commanded TCP speed (m/s) of the push into the socket."""
-PLUG_ENTER = 0.003
-"""The tip is first pushed PLUG_ENTER (m) past the entrance; if it did not get in (it stands on the rim: the aim was
-off by more than the play), the object is lifted back and the skill fails. A plug is not forced in from the rim:
-pushed down to the floor from there, a key slid along the rim into the keyway in the fingers (the perturbed expert,
-aiming 3 mm off, then succeeded on 10 of 10 seeds)."""
 PLUG_CLEAR = 0.001
 """The push ends with the tip this far (m) above the socket's floor; released there, the plug settles onto it."""
 TURN_PARTS = 3
@@ -68,7 +65,7 @@ def plug(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
     its entrance, the top, to its floor): grasp unless held, carry it over the entrance with its heading turned to
     the socket's (as an axis: the smaller turn), measure the tip and correct its position and heading until it is
     within a fraction of a millimetre of its aim, push it a few millimetres in and, once it is in, down to the
-    floor slowly; let go and back off. A tip that did not get in is lifted back and the skill fails."""
+    floor slowly; let go and back off. A tip that did not get in is put back (`give_up_fit`)."""
     if "/" not in target:
         raise SkillFailed(f"plug: target {target!r} is not an object/annotation socket")
     if not ctx.scene.has_site(obj, "tip"):
@@ -84,11 +81,8 @@ def plug(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
     yield from _aim(ctx, a, obj, socket, aim)
     # in by a few millimetres first: a tip that does not enter (it stands on the socket's rim) is not forced
     entrance = float(aim[2]) - PLUG_LEAD
-    down = float(ctx.scene.site(obj, "tip").center[2]) - (entrance - PLUG_ENTER)
-    yield ctx.line(a, ctx.tcp(a).shifted([0.0, 0.0, -down]), PLUG_SPEED, settle=10)
-    if float(ctx.scene.site(obj, "tip").center[2]) >= entrance - PLUG_ENTER / 2:
-        yield ctx.line(a, ctx.tcp(a).shifted([0.0, 0.0, down]), PLUG_SPEED, settle=6)
-        raise SkillFailed(f"plug: {obj} did not enter {target}")
+    if not (yield from pushed_in(ctx, a, lambda: ctx.scene.site(obj, "tip").center, entrance, PLUG_SPEED)):
+        yield from give_up_fit(ctx, a, obj, target)
     depth = float(ctx.scene.site(obj, "tip").center[2] - floor[2]) - PLUG_CLEAR
     yield ctx.line(a, ctx.tcp(a).shifted([0.0, 0.0, -depth]), PLUG_SPEED, settle=10)
     yield from open_and_retreat(ctx, a)

@@ -15,6 +15,9 @@ import mujoco
 import numpy as np
 from dojo.compiler.robot_emit import TABLE_TOP_Z
 
+UPRIGHT = 0.99
+"""A round geom whose axis has at least this vertical component stands upright (`Scene.upright_round`)."""
+
 
 @dataclass(frozen=True)
 class Box:
@@ -107,6 +110,26 @@ class Scene:
             box = self.box(name)
             return 2.0 * float(np.abs(box.rot.T @ axis) @ box.half)
         return max(widths)
+
+    def floor_under(self, name: str, point: np.ndarray) -> float:
+        """The highest top, below `point`, of the object's collision geoms that the vertical line through `point`
+        meets: what an object put down through an opening of `name` at `point` comes to rest on (a rack's base
+        under its hole, a coin bank's floor under its slot); the table if none."""
+        tops = [self.table_z]
+        for b in self.geom_boxes(name):
+            top = float(b.center[2] + np.abs(b.rot[2]) @ b.half)
+            if top <= point[2] and _vertical_line_meets(point, b.center, b.rot, b.half):
+                tops.append(top)
+        return max(tops)
+
+    def upright_round(self, name: str) -> bool:
+        """Whether every collision geom of the object is a sphere, or a cylinder or capsule standing upright (a
+        test tube, a can): fingers grip it alike across any horizontal axis."""
+        sphere, upright = int(mujoco.mjtGeom.mjGEOM_SPHERE), (int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+                                                               int(mujoco.mjtGeom.mjGEOM_CYLINDER))
+        return all(int(self.model.geom_type[g]) == sphere or (
+            int(self.model.geom_type[g]) in upright and abs(float(self.data.geom_xmat[g][8])) > UPRIGHT)
+            for g in self._geoms[name])
 
     def has_site(self, name: str, annotation: str) -> bool:
         return annotation in self.plan.objects[name]["sites"]

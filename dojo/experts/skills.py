@@ -17,7 +17,7 @@ fixtures moved by a handle) live in `dojo.experts.articulated`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Generator, Iterator
 from typing import Any
 
 import mujoco
@@ -77,6 +77,30 @@ REACH = 0.5
 """Planar distance from an arm's base within which it grasps and places top-down."""
 RELAY_ROOM = 0.03
 """Room (m) between a handed-over object and its neighbours that leaves space for the taker's open fingers."""
+FIT_ENTER = 0.003
+"""A fitted object's leading end is first pushed FIT_ENTER (m) past the opening's entrance: if it did not get in
+(it stands on the rim: the aim was off by more than the play), the fit gives up (`give_up_fit`) rather than force
+it: pushed on from the rim, a key slid along it into the keyway in the fingers."""
+FIT_SLIP, FIT_HOLD = 0.0005, 0.0015
+"""An object pushed FIT_SLIP (m) aside on its way into an opening was forced by the rim (`lowered_straight`): soft
+contacts let a part pressed onto a rim sink a millimetre past it (a coin 2 mm off across a slot that gives it 0.8 mm
+went in pushed aside 0.5 to 0.8 mm). One that fell FIT_HOLD (m) short of the way down was held back (a free one
+lags a short push by up to 0.7 mm: the arm's own lag)."""
+FIT_AIMS, FIT_AIM_TOL = 4, 0.0003
+"""An inserted object's leading point found farther than FIT_AIM_TOL (m) from over the opening's centre is moved, at
+most FIT_AIMS times, before it goes in."""
+FIT_SETTLE = 25
+"""Control steps an insertion's move is held at its end before the object is measured."""
+FIT_LEAD = 0.004
+"""Height (m) of an inserted object's bottom above the opening's entrance while it is aimed."""
+FINGER_CLEAR = 0.002
+"""Height (m) above an opening's entrance that the fingertips stop at when they lower an object through it."""
+FLOOR_GAP = 0.004
+"""Height (m) above what it will stand on at which an inserted object is let go."""
+RELEASE_MARGIN = 0.02
+"""How much wider (m) than the object an insertion opens the fingers to let go."""
+PUT_BACK_DROP = 0.005
+"""Height (m) above where it stood at which a part whose fit gave up is let go (it may have stood in a holder)."""
 
 
 class SkillContext:
@@ -307,9 +331,13 @@ def grasp_height(ctx: SkillContext, obj: str) -> float:
     return z
 
 
-def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3, pitch: float = 0.0) -> SkillGen:
+def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3, pitch: float = 0.0, upright: bool = False
+          ) -> SkillGen:
     """Pick `obj` from above: pre-grasp, open just wide enough, descend, close, lift clear of the table. The
-    gripper tilts `pitch` forward (or more, if the arm does not reach it so), for a drop that needs the tilt."""
+    gripper tilts `pitch` forward (or more, if the arm does not reach it so), for a drop that needs the tilt.
+    `upright` (an insertion): a round object is gripped across the reach direction, so that the tilt turns the
+    gripper about the finger axis and the object stays upright between the pads (across another axis, the pads
+    lean and a test tube leans with them)."""
     for _ in range(attempts):
         region, axes = grasp_frame(ctx, obj)
         box = ctx.scene.box(obj)
@@ -318,6 +346,8 @@ def grasp(ctx: SkillContext, arm: int, obj: str, attempts: int = 3, pitch: float
             raise SkillFailed(f"{obj} is off the table or out of reach")
         start_center = float(box.center[2])
         axis, width = finger_axis(ctx, arm, obj, region, axes)
+        if upright and ctx.scene.upright_round(obj):
+            axis = ctx.natural_axis(arm, region.center)
         point = np.array([*region.center[:2], grasp_height(ctx, obj)])
         pose = ctx.reachable(arm, point, axis, prefer=pitch)
         opening = min(1.0, (width + 0.03) / ctx.max_width)
@@ -365,7 +395,7 @@ def carry_to(ctx: SkillContext, arm: int, obj: str, goal_center: np.ndarray, yaw
     below = float(tcp[2] - box.bottom)
     safe = ctx.transfer_height((obj,), box.center, goal_center, below, container)
     axis = _rotate_z(ctx.tcp(arm).rot[:, 1], yaw_change)  # the object turns with the fingers, by yaw_change
-    if ctx.pitch[arm] > 0.0 and yaw_change == 0.0 and not precise:
+    if ctx.pitch[arm] > 0.0 and yaw_change == 0.0:
         axis = _follow_reach(ctx, arm, axis, tcp, goal_center)
     axis[2] = 0.0
     if yaw_change == 0.0 and np.dot(axis, ctx.natural_axis(arm, goal_center)) < 0.0:
@@ -466,13 +496,52 @@ def _corners(box: Box) -> np.ndarray:
     return box.center + signs @ (box.rot * box.half).T
 
 
-def open_and_retreat(ctx: SkillContext, arm: int) -> SkillGen:
+def open_and_retreat(ctx: SkillContext, arm: int, opening: float = 1.0) -> SkillGen:
     """Let go and back out along the approach axis (straight up for a top-down gripper; a tilted one backs
-    off the object instead of dragging it along between the open fingers)."""
-    yield ctx.gripper(arm, 1.0, RELEASE_STEPS)
+    off the object instead of dragging it along between the open fingers). `opening` (a share of the widest):
+    fingers among close neighbours (tubes in a rack) open only so far."""
+    yield ctx.gripper(arm, opening, RELEASE_STEPS)
     ctx.held.pop(arm, None)
     here = ctx.tcp(arm)
     yield ctx.line(arm, here.shifted(-APPROACH * here.rot[:, 0]), FAST, settle=0)
+
+
+def pushed_in(ctx: SkillContext, arm: int, lead: Callable[[], np.ndarray], entrance: float, speed: float
+              ) -> Generator[Segment, None, bool]:
+    """Push the held object down until its leading point (`lead()`: where it is now) is FIT_ENTER past an
+    opening's `entrance` (a height); whether it got in straight (`lowered_straight`): a point on the rim stays at
+    the entrance, one let in off its aim by a chamfer or a tilt in the fingers was pushed aside on the way."""
+    down = float(lead()[2]) - (entrance - FIT_ENTER)
+    straight = yield from lowered_straight(ctx, arm, lead, -down, speed)
+    return straight and float(lead()[2]) < entrance - FIT_ENTER / 2
+
+
+def lowered_straight(ctx: SkillContext, arm: int, lead: Callable[[], np.ndarray], dz: float, speed: float
+                     ) -> Generator[Segment, None, bool]:
+    """Move the held object `dz` (m) down the way it was aimed (straight down); whether its leading point (`lead()`)
+    went so, neither pushed aside (FIT_SLIP) nor held back (FIT_HOLD) by a rim: a rounded end let in a few
+    millimetres off, then cammed along the rim into a hole that it fits only with a millimetre of play, was forced
+    in, as a careful robot does not do."""
+    start = lead()
+    yield ctx.line(arm, ctx.tcp(arm).shifted([0.0, 0.0, dz]), speed, settle=FIT_SETTLE)
+    moved = lead() - start
+    return float(np.linalg.norm(moved[:2])) < FIT_SLIP and float(moved[2]) - dz < FIT_HOLD
+
+
+def leading_point(ctx: SkillContext, obj: str) -> np.ndarray:
+    """The centre of an object's bottom face, the end that goes into an opening first (it swings aside most when
+    the object is pushed over on its way in)."""
+    box = ctx.scene.box(obj)
+    return box.center - box.rot[:, 2] * box.half[2]
+
+
+def give_up_fit(ctx: SkillContext, arm: int, obj: str, target: str) -> SkillGen:
+    """A fit whose object did not go in straight (`pushed_in`, `lowered_straight`): lift it back out and set it
+    down where it stood when the episode began, then fail. Not let go over the opening: released there, gravity
+    and the opening's chamfers would fit it for the robot (a charger plugged 3 mm off and let go by the next step,
+    `home`, fell into its socket)."""
+    yield from carry_to(ctx, arm, obj, ctx.start_scene.box(obj).center + [0.0, 0.0, PUT_BACK_DROP])
+    raise SkillFailed(f"{obj} did not enter {target}; put back")
 
 
 def place_center(ctx: SkillContext, arm: int, obj: str, target: str) -> np.ndarray:
@@ -606,11 +675,29 @@ def upright_pitch(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, conta
     tilted on the way leans out, into the bottles it passes and across a bin's rim. Grasped tilted, the
     object hangs upright, passes over and drops in bottom first. Zero when top-down reaches, or no tilt does,
     and for squat objects other than covers set down outside a container."""
-    box = ctx.scene.box(obj)
-    tall = float(np.abs(box.rot[2]) @ box.half) >= 2.0 * float(np.max(np.abs(box.rot[:2]) @ box.half))
-    if not tall and (container is not None or not ctx.scene.has_site(obj, "inside")):
+    if not _tall(ctx.scene.box(obj)) and (container is not None or not ctx.scene.has_site(obj, "inside")):
         return 0.0  # a block's edges, a fruit's curve slip in tilted fingers: only covers' bands are held tilted
     return next((pitch for pitch in PITCHES if carries_over(ctx, arm, obj, goal, container, pitch)), 0.0)
+
+
+def _tall(box: Box) -> bool:
+    """Whether an object stands at least twice as tall as it is wide (it hangs from a top-down grasp)."""
+    return float(np.abs(box.rot[2]) @ box.half) >= 2.0 * float(np.max(np.abs(box.rot[:2]) @ box.half))
+
+
+def insert_pitch(ctx: SkillContext, arm: int, obj: str, above: np.ndarray) -> float:
+    """The gripper tilt to grasp an object with for inserting it, its centre brought to `above` the opening: the
+    tilt that carries it upright (`upright_pitch`) or, for a tall one, the least tilt at which the arm holds it
+    upright there if that is more (low over a far opening a top-down arm falls short; grasped upright and tilted
+    there, a test tube would lean in its hole)."""
+    pitch = upright_pitch(ctx, arm, obj, above)
+    box = ctx.scene.box(obj)
+    if not _tall(box):
+        return pitch
+    point = above + [0.0, 0.0, grasp_height(ctx, obj) - float(box.center[2])]
+    axis = ctx.natural_axis(arm, point)
+    return next((p for p in PITCHES if p >= pitch and ctx.planner.ik(
+        ctx._seed(arm, point), arm, Pose(point, ctx.orientation(arm, point, axis, p)))[1] < REACH_TOL), pitch)
 
 
 def carries_over(ctx: SkillContext, arm: int, obj: str, goal: np.ndarray, container: str | None = None,
@@ -702,18 +789,41 @@ def stack(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
 
 
 def insert(ctx: SkillContext, arm: str, obj: str, target: str) -> SkillGen:
-    """Put `obj` into a hole or slot: grasp unless held, align above the opening, lower slowly until the
-    object's bottom is near the opening's bottom, release."""
+    """Put `obj` into a hole or slot (`object/annotation`: a box from the entrance, its top, to its bottom): grasp
+    unless held, carry it over the opening with its bottom just above the entrance (measured and corrected on the
+    way down), push it a few millimetres in and, once it is in, lower it slowly until its bottom is near the
+    opening's floor or its fingertips near the entrance (at least FIT_ENTER in) and let go. An object that does
+    not enter, or goes in only pushed aside or held back by the rim, is put back (`give_up_fit`)."""
+    if "/" not in target:
+        raise SkillFailed(f"insert: target {target!r} is not an object/annotation opening")
     goal = ctx.scene.target(target)
-    a = next((k for k, held in ctx.held.items() if held == obj), None)
-    if a is None:
-        a = ctx.choose_arm(arm, ctx.scene.box(obj).center, goal.point)
-        yield from free_other_arm(ctx, a)
-        yield from grasp(ctx, a, obj)
     box = ctx.scene.box(obj)
-    height = float(np.abs(box.rot[2]) @ box.half)
-    yield from carry_to(ctx, a, obj, goal.point + [0.0, 0.0, height + 0.004], yaw_change=_slot_yaw(ctx, obj, target),
+    entrance = float(goal.point[2] + 2.0 * goal.half[2])
+    above = np.array([*goal.point[:2], entrance + FIT_LEAD + float(np.abs(box.rot[2]) @ box.half)])
+    a = next((k for k, held in ctx.held.items() if held == obj), None)
+    if a is None:  # a tall object (a test tube) is grasped with the tilt that brings it upright over the opening
+        a = ctx.choose_arm(arm, box.center, goal.point)
+        yield from free_other_arm(ctx, a)
+        yield from grasp(ctx, a, obj, pitch=insert_pitch(ctx, a, obj, above), upright=True)
+    yield from carry_to(ctx, a, obj, above, yaw_change=_slot_yaw(ctx, obj, target), release=False,
                         speed_down=SLOW / 2, precise=True)
+    for _ in range(FIT_AIMS):  # the end that goes in first over the opening's centre (a held tube leans a little)
+        error = goal.point[:2] - leading_point(ctx, obj)[:2]
+        if float(np.linalg.norm(error)) < FIT_AIM_TOL:
+            break
+        yield ctx.line(a, ctx.tcp(a).shifted([error[0], error[1], 0.0]), SLOW / 4, settle=10)
+    if not (yield from pushed_in(ctx, a, lambda: leading_point(ctx, obj), entrance, SLOW / 2)):
+        yield from give_up_fit(ctx, a, obj, target)
+    # down to just above what it will stand on (a rack's base) or, through a slot in a lid, as far as the
+    # fingers clear the lid
+    floor = ctx.scene.floor_under(target.split("/", 1)[0], np.array([*goal.point[:2], entrance]))
+    fingers = float(ctx.tcp(a).pos[2]) - FINGERTIP - (entrance + FINGER_CLEAR)
+    bottom = min(max(floor + FLOOR_GAP, ctx.scene.box(obj).bottom - fingers), entrance - FIT_ENTER)
+    if not (yield from lowered_straight(ctx, a, lambda: leading_point(ctx, obj), bottom - ctx.scene.box(obj).bottom,
+                                        SLOW / 2)):
+        yield from give_up_fit(ctx, a, obj, target)
+    # let go no wider than the object and a margin: a finger opened wide would knock a neighbour over
+    yield from open_and_retreat(ctx, a, min(1.0, (2.0 * float(np.max(box.half[:2])) + RELEASE_MARGIN) / ctx.max_width))
 
 
 def _slot_yaw(ctx: SkillContext, obj: str, target: str) -> float:

@@ -9,7 +9,7 @@ import pytest
 from dojo.compiler.plan import compile_plan
 from dojo.experts.oracle import ScriptedExpert
 from dojo.experts.perturbed import PERTURB_DISTANCE, PerturbedOracle, aim_offsets, fits, has_fits
-from dojo.experts.validity import policies, runs
+from dojo.experts.validity import plan_files, policies, run_policy, runs
 
 
 @pytest.fixture(scope="module")
@@ -50,3 +50,33 @@ def test_the_perturbed_expert_sees_its_targets_moved_and_nothing_else(library, s
     assert np.allclose(expert.ctx.scene.site("nut_a", "top").center, plain.ctx.scene.site("nut_a", "top").center)
     assert np.allclose(expert.ctx.scene.box("screw_a").center, plain.ctx.scene.box("screw_a").center)
     assert policies(perturb=0.004)["perturbed"].distance == 0.004
+
+
+class _KeptExperts(PerturbedOracle):
+    """The perturbed expert, each episode's scripted expert kept to look at afterwards."""
+
+    def __init__(self, config: dict | None = None) -> None:
+        super().__init__(config)
+        self.made: list[ScriptedExpert] = []
+
+    def new_expert(self, plan):
+        expert = super().new_expert(plan)
+        self.made.append(expert)
+        return expert
+
+
+@pytest.mark.parametrize("task, part, opening", [("insert_tubes", "tube_0", "rack/hole_1"),
+                                                  ("plug_in_charger", "charger", "strip/socket")])
+def test_a_fit_aimed_3_mm_off_gives_up_and_puts_the_part_back(library, plan_cache, task, part, opening):
+    """`insert` and `plug` push a few millimetres in and, when the part stands on the rim (the charger) or is pushed
+    aside on its way in (a tube's rounded end cams along the rim), give up without letting go over the opening: the
+    part is set down where it stood at the start, so that no later step (home opens the grippers) drops it in."""
+    files = plan_files(library, [task], 1, plan_cache)[task]
+    policy = _KeptExperts({"distance": PERTURB_DISTANCE})
+    [outcome] = run_policy(policy, files, num_envs=1)
+    ctx = policy.made[-1].ctx
+    assert not outcome.success
+    assert any(f.startswith(f"{part} did not enter") for f in ctx.failures), ctx.failures
+    start, end = ctx.start_scene.box(part).center[:2], ctx.scene.box(part).center[:2]
+    hole = ctx.scene.site(*opening.split("/")).center[:2]
+    assert float(np.linalg.norm(end - start)) < 0.5 * float(np.linalg.norm(end - hole)), (start, end, hole)
