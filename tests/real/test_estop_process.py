@@ -22,12 +22,11 @@ httpx = pytest.importorskip("httpx")
 
 from dojo.backends.real.piper_driver import PiperDriver  # noqa: E402
 from dojo.backends.real.safety import SafetyLayer  # noqa: E402
-from dojo.backends.real.workspace import RobotGeometry  # noqa: E402
 from dojo.realeval.estop import EstopProcess  # noqa: E402
+from safety_rig import commanding_away, latency_summary, rig_safety  # noqa: E402
 
 TOKEN = "estop-test-token"
 COOKIE = "dojo_console"
-CONTROL_HZ = 25.0
 CLIENT = """
 import json, sys, time
 import httpx
@@ -69,29 +68,15 @@ def armed(make_rig):
     rig = make_rig(bus="dojo_host")
     with PiperDriver(rig.robot, rig.channels, interface="dojo_host") as driver:
         driver.connect()
-        safety = SafetyLayer(driver, RobotGeometry(rig.model, rig.robot), rig.config, CONTROL_HZ,
-                             clock=rig.sim.clock)
-        safety.start()
+        safety = rig_safety(rig, driver)
         told: list[float] = []
         process = EstopProcess(driver, TOKEN, COOKIE, "127.0.0.1", 0,
                                on_press=lambda at: (told.append(at), safety.estop()))
         safety.remote_halt = process.halt
-        home_q, grip = driver.home_pose
-        target = home_q + np.array([[0.4, 0.2, -0.2, 0.3, 0.2, 0.5], [-0.4, 0.2, -0.2, -0.3, 0.2, -0.5]])
-        done = threading.Event()
-
-        def policy() -> None:
-            while not done.is_set():
-                safety.command(target, grip)
-                time.sleep(1.0 / CONTROL_HZ)
-
-        thread = threading.Thread(target=policy)
-        thread.start()
         try:
-            yield rig, safety, process, told
+            with commanding_away(safety):
+                yield rig, safety, process, told
         finally:
-            done.set()
-            thread.join()
             process.close()
             safety.close()
 
@@ -168,15 +153,10 @@ def test_press_to_hold_on_the_bus_with_the_machine_loaded(armed, figures, path) 
             p.kill()
             p.wait()
 
-    def summary(values: list[float]) -> dict[str, float]:
-        ms = 1000.0 * np.asarray(values)
-        return {"p50": round(float(np.percentile(ms, 50)), 2), "p99": round(float(np.percentile(ms, 99)), 2),
-                "max": round(float(ms.max()), 2), "presses": len(values)}
-
     busy_n = 2 * (os.cpu_count() or 1)
     figures.add(f"estop.{path}.press_to_hold_on_the_bus_ms({busy_n} busy processes; HTTP press -> first frame)",
-                summary(latencies))
-    figures.add(f"estop.{path}.press_to_hold_sent_ms(HTTP press -> the hold sent)", summary(held))
+                latency_summary(latencies))
+    figures.add(f"estop.{path}.press_to_hold_sent_ms(HTTP press -> the hold sent)", latency_summary(held))
     assert len(latencies) == presses
 
 

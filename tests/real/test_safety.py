@@ -20,8 +20,8 @@ import pytest
 from dojo.backends.real.driver import Driver, RobotState
 from dojo.backends.real.safety import ESTOP, HOLDING, RETURNING, RUNNING, STOPPED, SafetyLayer
 from dojo.backends.real.workspace import RobotGeometry
+from safety_rig import CONTROL_HZ, commanding_away, latency_summary, rig_safety
 
-CONTROL_HZ = 25.0
 BELOW_TABLE = [0.0, 2.0, -0.9, 0.0, 0.4, 0.0]      # shoulder pitched down: the hand goes through the table
 OUT_SIDEWAYS = [1.57, 1.57, -1.0, 0.0, 0.0, 0.0]   # left arm stretched out to the left, beyond x = -0.75
 
@@ -257,50 +257,31 @@ def test_estop_latency_over_many_presses_with_the_machine_loaded(make_rig, figur
     try:
         with PiperDriver(rig.robot, rig.channels, interface="virtual") as driver:
             driver.connect()
-            safety = SafetyLayer(driver, RobotGeometry(rig.model, rig.robot), rig.config, CONTROL_HZ,
-                                 clock=rig.sim.clock)
-            safety.start()
-            home_q, grip = driver.home_pose
-            target = home_q + np.array([[0.4, 0.2, -0.2, 0.3, 0.2, 0.5], [-0.4, 0.2, -0.2, -0.3, 0.2, -0.5]])
-            done = threading.Event()
-
-            def policy() -> None:
-                while not done.is_set():
-                    safety.command(target, grip)
-                    time.sleep(1.0 / CONTROL_HZ)
-
-            thread = threading.Thread(target=policy)
-            thread.start()
+            safety = rig_safety(rig, driver)
             rng = np.random.default_rng(0)
             try:
-                for _ in range(presses):
-                    time.sleep(rng.uniform(0.1, 0.25))
-                    pressed = rig.sim.clock()
-                    safety.estop()
-                    while not (frames := rig.emulator.frames_since(pressed)):
-                        time.sleep(0.0005)
-                    on_bus.append(min(f.on_bus for f in rig.emulator.frames_since(pressed)) - pressed)
-                    seen.append(frames[0].time - pressed)
-                    time.sleep(0.05)
-                    assert safety.state == ESTOP
-                    safety.release()
+                with commanding_away(safety):
+                    for _ in range(presses):
+                        time.sleep(rng.uniform(0.1, 0.25))
+                        pressed = rig.sim.clock()
+                        safety.estop()
+                        while not (frames := rig.emulator.frames_since(pressed)):
+                            time.sleep(0.0005)
+                        on_bus.append(min(f.on_bus for f in rig.emulator.frames_since(pressed)) - pressed)
+                        seen.append(frames[0].time - pressed)
+                        time.sleep(0.05)
+                        assert safety.state == ESTOP
+                        safety.release()
             finally:
-                done.set()
-                thread.join()
                 safety.close()
     finally:
         for process in load:
             process.kill()
             process.wait()
 
-    def summary(values: list[float]) -> dict[str, float]:
-        ms = 1000.0 * np.asarray(values)
-        return {"p50": round(float(np.percentile(ms, 50)), 2), "p99": round(float(np.percentile(ms, 99)), 2),
-                "max": round(float(ms.max()), 2), "presses": presses}
-
     figures.add(f"safety.estop_under_load_ms({2 * (os.cpu_count() or 1)} busy processes; call -> hold on the bus)",
-                summary(on_bus))
-    figures.add("safety.estop_under_load_ms(call -> seen by the emulated arm controller)", summary(seen))
+                latency_summary(on_bus))
+    figures.add("safety.estop_under_load_ms(call -> seen by the emulated arm controller)", latency_summary(seen))
     assert len(on_bus) == presses
 
 
@@ -320,39 +301,25 @@ def test_estop_reaches_the_emulated_arms_and_returns_them_slowly(make_rig, figur
     rig = make_rig()
     with PiperDriver(rig.robot, rig.channels, interface="virtual") as driver:
         driver.connect()
-        safety = SafetyLayer(driver, RobotGeometry(rig.model, rig.robot), rig.config, CONTROL_HZ,
-                             clock=rig.sim.clock)
-        safety.start()
-        home_q, grip = driver.home_pose
-        target = home_q + np.array([[0.4, 0.2, -0.2, 0.3, 0.2, 0.5], [-0.4, 0.2, -0.2, -0.3, 0.2, -0.5]])
-        done = threading.Event()
-
-        def policy() -> None:
-            while not done.is_set():
-                safety.command(target, grip)
-                time.sleep(1.0 / CONTROL_HZ)
-
-        thread = threading.Thread(target=policy)
-        thread.start()
+        safety = rig_safety(rig, driver)
         try:
-            time.sleep(0.4)
-            trigger = safety.estop()
-            arrivals = rig.emulator.frames_since(trigger)
-            while not arrivals:
-                time.sleep(0.001)
+            with commanding_away(safety) as home_q:
+                time.sleep(0.4)
+                trigger = safety.estop()
                 arrivals = rig.emulator.frames_since(trigger)
-            latency_ms = (arrivals[0].time - trigger) * 1000.0
-            stopped_at = rig.sim.arm_joints()
-            speeds = []
-            deadline = time.monotonic() + 20.0
-            while safety.state != STOPPED and time.monotonic() < deadline:
-                if safety.state == RETURNING and rig.sim.clock() - trigger > rig.config.estop_hold_s + 0.2:
-                    speeds.append(np.abs(driver.read().joint_vel).max())
-                time.sleep(0.01)
-            returned_s = rig.sim.clock() - trigger
+                while not arrivals:
+                    time.sleep(0.001)
+                    arrivals = rig.emulator.frames_since(trigger)
+                latency_ms = (arrivals[0].time - trigger) * 1000.0
+                stopped_at = rig.sim.arm_joints()
+                speeds = []
+                deadline = time.monotonic() + 20.0
+                while safety.state != STOPPED and time.monotonic() < deadline:
+                    if safety.state == RETURNING and rig.sim.clock() - trigger > rig.config.estop_hold_s + 0.2:
+                        speeds.append(np.abs(driver.read().joint_vel).max())
+                    time.sleep(0.01)
+                returned_s = rig.sim.clock() - trigger
         finally:
-            done.set()
-            thread.join()
             safety.close()
         assert safety.state == STOPPED
         assert np.abs(rig.sim.arm_joints() - home_q).max() < 0.02
