@@ -1,7 +1,6 @@
-"""Smoke tests of the keyed-insertion tasks (insert_key, plug_in_charger): the expert solves the first scene seed,
-`zero` does nothing, and the lock's cylinder stays locked until a key is seated in its keyway (the task's events:
-lock at the start, unlock when `plugged` first holds). The 50-seed table is `python -m dojo.experts.validity
---tasks insert_key plug_in_charger --seeds 50` (README)."""
+"""The keyed-insertion mechanisms (insert_key, plug_in_charger): the lock's cylinder stays locked until a key is
+seated in its keyway (the task's events: lock at the start, unlock when `plugged` first holds), and a plug aimed
+3 mm off does not go in. Their expert and zero smoke tests are in test_precision_tasks.py."""
 
 from __future__ import annotations
 
@@ -11,24 +10,7 @@ import numpy as np
 import pytest
 from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.plan import Plan
-from dojo.experts.validity import plan_files, policies, run_policy
-
-TASKS = ["insert_key", "plug_in_charger"]
-
-
-@pytest.mark.parametrize("task", TASKS)
-def test_expert_solves_the_first_seed(library, plan_cache, task):
-    files = plan_files(library, [task], 1, plan_cache)[task]
-    outcomes = run_policy(policies()["expert"], files, num_envs=1)
-    assert [o.success for o in outcomes] == [True], outcomes
-
-
-def test_zero_policy_scores_nothing(library, plan_cache):
-    files = plan_files(library, TASKS, 1, plan_cache)
-    outcomes = run_policy(policies()["zero"], [f for t in TASKS for f in files[t]], max_steps=60)
-    assert sorted(o.task for o in outcomes) == TASKS
-    assert not any(o.success or o.score for o in outcomes), outcomes
-
+from dojo.experts.validity import plan_files, run_policy
 
 TORQUE = 0.05
 """N m on the cylinder's hinge: far more than its damping needs to turn it a quarter turn in a few steps."""

@@ -1,6 +1,6 @@
-"""Smoke tests of the Precision tasks built on new mechanisms (strikes, towers, granular contents): the expert
-solves the first scene seed and `zero` does nothing. The 50-seed table (expert >= 95%, zero and random 0%) is
-`-m slow`."""
+"""Smoke tests of the Precision tasks built on new mechanisms (strikes, towers, granular contents, keyed
+insertion): the expert solves the first scene seed and `zero` does nothing. The 50-seed table (expert >= 95%, zero
+and random 0%) is `-m slow`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 import pytest
 from dojo.experts.validity import SUCCESS_BAR, plan_files, policies, run_episodes, run_policy, summarize
 
-TASKS = ["build_tower", "play_xylophone", "pour_balls_into_vase"]
+TASKS = ["build_tower", "insert_key", "play_xylophone", "plug_in_charger", "pour_balls_into_vase"]
 
 
 @pytest.mark.parametrize("task", TASKS)
