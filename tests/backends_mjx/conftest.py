@@ -1,6 +1,7 @@
 """Small synthetic plans for the MJX tests: real plans (two 6-DoF arms, hull meshes) take minutes to compile for
 CPU, so the CI tests use scenes of a few spheres and boxes that keep the structure that matters here: a task
-object, an actuated joint, and a varying number of clutter bodies of two kinds in the `random` setting."""
+object, an actuated joint, and a varying number of clutter bodies of two kinds in the `random` setting; `items` adds
+task objects of those kinds, so that tasks differ in their objects (merged buckets)."""
 
 from __future__ import annotations
 
@@ -14,17 +15,19 @@ from dojo.compiler.plan import Plan
 CACHE_DIR = os.environ.get("DOJO_TEST_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "dojo-test-jax"))
 
 
-def _clutter(name: str, kind: str, x: float, size: float) -> str:
+def _clutter(name: str, kind: str, x: float, size: float, y: float = 0.3) -> str:
     geom = (f'<geom name="{name}/g0" type="sphere" size="{size}" mass="0.05"/>' if kind == "ball"
             else f'<geom name="{name}/g0" type="box" size="{size} {size} {size}" mass="0.05"/>')
-    return (f'<body name="{name}" pos="{x} 0.3 {size}"><joint name="{name}/free" type="free"/>{geom}'
+    return (f'<body name="{name}" pos="{x} {y} {size}"><joint name="{name}/free" type="free"/>{geom}'
             f'<site name="{name}/top" size="{size / 4}"/></body>')
 
 
 def toy_plan(task: str = "toy", setting: str = "standard", seed: int = 0,
-             clutter: tuple[str, ...] = (), block_size: float = 0.03, rgba: str = "0.8 0.1 0.1 1") -> Plan:
-    """A plan of a tiny scene: floor, a slider pushing a free box, optional free clutter bodies."""
-    bodies = "".join(_clutter(f"clutter_{k}", kind, -0.3 + 0.15 * k, 0.02 + 0.005 * seed % 3)
+             clutter: tuple[str, ...] = (), block_size: float = 0.03, rgba: str = "0.8 0.1 0.1 1",
+             items: tuple[str, ...] = ()) -> Plan:
+    """A plan of a tiny scene: floor, a slider pushing a free box, optional free task items and clutter bodies."""
+    bodies = "".join(_clutter(f"item_{k}", kind, 0.3 - 0.15 * k, 0.025, y=-0.3) for k, kind in enumerate(items))
+    bodies += "".join(_clutter(f"clutter_{k}", kind, -0.3 + 0.15 * k, 0.02 + 0.005 * seed % 3)
                      for k, kind in enumerate(clutter))
     xml = f"""<mujoco model="{task}-{setting}-{seed}">
   <option timestep="0.004"/>
@@ -46,6 +49,7 @@ def toy_plan(task: str = "toy", setting: str = "standard", seed: int = 0,
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     objects: dict[str, dict[str, Any]] = {"block": {"body": "block", "clutter": False}}
+    objects.update({f"item_{k}": {"body": f"item_{k}", "clutter": False} for k in range(len(items))})
     objects.update({f"clutter_{k}": {"body": f"clutter_{k}", "clutter": True} for k in range(len(clutter))})
     return Plan(hash=f"{task}-{setting}-{seed}", task=task, dimension="generalization", setting=setting, seed=seed,
                 embodiment="toy", instruction="push", horizon=20, control_hz=25.0, n_substeps=10, cameras=[],

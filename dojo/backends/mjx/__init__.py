@@ -2,6 +2,7 @@
 
 - `pad`: one task's plans rewritten to share one structure (clutter slots parked, lights/textures/names canonical);
 - `bucket`: the structural signature MJX compiles against, buckets and their per-member varying model fields;
+- `lanes`: a bucket's predicate programs, one per task when buckets are merged across tasks, picked per env;
 - `batch`: `Engine`, every bucket's batch stepped in one jitted tick (sub-steps, resets, refills, hooks);
 - `backend`: `MjxBackend`, the `Backend` interface with actions, predicates and proprioception on the device;
 - `parity`: `parity_report` / `format_table`, agreement with the `mujoco` backend;
@@ -32,9 +33,9 @@ if _printed.getvalue().strip():
 
 
 def make(options: BackendOptions) -> MjxBackend:
-    """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto) and `devices`
-    (how many local devices the environments are split over, or `all`). Every plan of the run is loaded up front
-    (`preload`), so the run compiles once."""
+    """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
+    (how many local devices the environments are split over, or `all`) and `merge` (buckets merged across tasks).
+    Every plan of the run is loaded up front (`preload`), so the run compiles once."""
     from pathlib import Path
 
     import jax
@@ -50,7 +51,8 @@ def make(options: BackendOptions) -> MjxBackend:
     impl = options.settings.get("impl")
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
-                         height=options.height, depth=options.depth, devices=options.settings.get("devices"))
+                         height=options.height, depth=options.depth, devices=options.settings.get("devices"),
+                         merge=bool(options.settings.get("merge", False)))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

@@ -12,7 +12,8 @@ Per tick and bucket, traced once: actions in every mode (a per-env mode id picks
 solve the same damped-least-squares IK as the CPU backend, batched on the device with MJX kinematics and
 Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no env of the bucket asks for ee);
 physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
-and the program (`program_step`) with the plans' params gathered by member; proprioception as in the CPU
+and the program (`program_step`) with the plans' params gathered by member, once per lane of the bucket (one lane
+per task; a bucket merged across tasks, `merge=True`, has several, see `lanes`); proprioception as in the CPU
 backend's `RobotIndex.proprioception`.
 
 Implementations. `impl='jax'` runs everywhere and is what `auto` chooses; `impl='warp'` (MuJoCo Warp, an NVIDIA GPU
@@ -26,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import jax
@@ -39,13 +40,14 @@ from dojo.backends import actions as A
 from dojo.backends.base import (END_NONFINITE, Backend, Observation, StepResult, checked_actions, end_after_step,
                                 envelope, refuse_ended, resolve_ids)
 from dojo.backends.mujoco.kinematics import RobotIndex
-from dojo.backends.predicate_program import ProgramLayout, compile_program, init_memory, program_step, stack_params
-from dojo.backends.predicate_state import BODY, SITE, StateIndex, gather_state
+from dojo.backends.predicate_program import init_memory, program_step
+from dojo.backends.predicate_state import gather_state
 from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
 
@@ -73,50 +75,17 @@ INPUT_WIDTH = 2 * A.EE_PER_ARM
 """Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
 
 
-@dataclass(frozen=True)
-class _Program:
-    """A bucket's predicate program: one layout and state index for all members, params per member."""
-
-    layout: ProgramLayout
-    index: StateIndex
-    params: dict[str, np.ndarray]  # [members, ...]
-
-
-def _bucket_program(bucket: Bucket) -> _Program:
-    """Compile every member's program against its own plan and move the indices into the padded model.
-
-    Padding appends slot bodies after everything else, so bodies, sites and joints a program names keep their
-    ids; the extra geoms map to "not tracked". Checked by name, and all members must share layout and index.
-    """
-    padded = bucket.model
-    layouts, indices, params = set(), set(), []
-    for member in bucket.members:
-        source = member.plan.model()
-        compiled = compile_program(member.plan, source)
-        index = compiled.index
-        for kind, ident in zip(index.frame_kind, index.frame_id):
-            obj = {BODY: mujoco.mjtObj.mjOBJ_BODY, SITE: mujoco.mjtObj.mjOBJ_SITE}.get(kind)
-            if obj is not None and mujoco.mj_id2name(source, obj, ident) != mujoco.mj_id2name(padded, obj, ident):
-                raise ValueError(f"bucket {bucket.key}: padding moved frame {ident} of plan {member.plan.hash[:12]}")
-        extra = (index.n_atoms,) * (padded.ngeom - source.ngeom)
-        indices.add(replace(index, geom_atom=index.geom_atom + extra))
-        layouts.add(compiled.layout)
-        params.append(compiled.params)
-    if len(layouts) != 1 or len(indices) != 1:
-        raise ValueError(f"bucket {bucket.key}: members compile to different predicate programs")
-    return _Program(layouts.pop(), indices.pop(), stack_params(params))
-
-
 class _DeviceHooks(Hooks):
     """Actions, predicates and proprioception inside the tick (see module docstring)."""
 
     forward = True
 
-    def __init__(self, programs: dict[str, _Program], robots: dict[str, RobotIndex], impl: str):
+    def __init__(self, programs: dict[str, BucketPrograms], robots: dict[str, RobotIndex], impl: str):
         self.programs, self.robots, self.impl = programs, robots, impl
 
     def init_extra(self, arr: BucketArrays) -> Tree:
-        return init_memory(jnp, self.programs[arr.bucket.key].layout, arr.size)
+        """One predicate memory per lane of the bucket (`lanes`), each for the whole batch."""
+        return tuple(init_memory(jnp, lane.layout, arr.size) for lane in self.programs[arr.bucket.key].lanes)
 
     def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
         actions, mode = inputs
@@ -137,25 +106,29 @@ class _DeviceHooks(Hooks):
 
     def observe(self, arr: BucketArrays, m: Tree, data: Tree, memory: Tree, member: jax.Array, reset: jax.Array,
                 stepping: jax.Array, clipped: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
-        program, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
-        params = {k: jnp.asarray(v)[member] for k, v in program.params.items()}
+        programs, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
         if self.impl == "warp":  # the pool is sorted into worlds below; no per-environment rows to read
             geom1 = geom2 = jnp.zeros((arr.size, 0), jnp.int32)
             dist = jnp.zeros((arr.size, 0), data.qpos.dtype)
         else:
             geom1, geom2, dist = data.contact.geom1, data.contact.geom2, data.contact.dist
-        state = gather_state(jnp, program.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
-                             data.site_xmat, data.qpos, geom1, geom2, dist, data.qvel)
-        if self.impl == "warp":
-            pool = data._impl
-            state["contact"] = pool_contact_matrix(
-                jnp, jnp.asarray(program.index.arrays["geom_atom"]), pool.contact__geom, pool.contact__dist,
-                pool.contact__worldid, pool.nacon, arr.size, program.index.n_atoms)
-        new_memory, out = program_step(jnp, program.layout, state, params, memory, steps)
-        memory = jax.tree.map(lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o),
-                              new_memory, memory)
-        return memory, {"success": out.success, "score": out.score, "stage_step": out.stage_step,
-                        "terms": out.terms, "clipped": clipped, **_proprioception(robot, data)}
+        memories, outputs = [], []
+        for lane, lane_memory in zip(programs.lanes, memory):  # every lane on the whole batch (see `lanes`)
+            params = {k: jnp.asarray(v)[member] for k, v in lane.params.items()}
+            state = gather_state(jnp, lane.index, params["const_pos"], data.xpos, data.xmat, data.site_xpos,
+                                 data.site_xmat, data.qpos, geom1, geom2, dist, data.qvel)
+            if self.impl == "warp":
+                pool = data._impl
+                state["contact"] = pool_contact_matrix(
+                    jnp, jnp.asarray(lane.index.arrays["geom_atom"]), pool.contact__geom, pool.contact__dist,
+                    pool.contact__worldid, pool.nacon, arr.size, lane.index.n_atoms)
+            new_memory, out = program_step(jnp, lane.layout, state, params, lane_memory, steps)
+            memories.append(jax.tree.map(
+                lambda n, o: jnp.where(stepping.reshape((-1,) + (1,) * (o.ndim - 1)), n, o), new_memory,
+                lane_memory))
+            outputs.append(out)
+        chosen = select_lanes(jnp, jnp.asarray(programs.member_lane)[member], outputs)
+        return tuple(memories), {**chosen, "clipped": clipped, **_proprioception(robot, data)}
 
 
 def _jax_kinematics(arr: BucketArrays, m: Tree, qpos: jax.Array) -> tuple[Tree, Tree, Tree]:
@@ -253,18 +226,22 @@ class MjxBackend(Backend):
 
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
-                 height: int = 480, depth: bool = False, devices: int | str | None = None) -> None:
+                 height: int = 480, depth: bool = False, devices: int | str | None = None,
+                 merge: bool = False) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
         model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots.
         `devices`: how many local devices every bucket's environments are split over (`sharding`); all of them by
-        default, so one process uses every GPU of its host."""
+        default, so one process uses every GPU of its host.
+        `merge`: buckets merged across tasks (`make_buckets(merge=True)`): one structure per robot where the
+        scenes allow it, each task's program a lane of its bucket (`lanes`)."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
         self._renderers: list[CpuRenderer] = []
         self.impl = backend_impl(impl)
+        self.merge = bool(merge)
         log.info("mjx backend: %s", describe_impl(self.impl))
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
@@ -292,7 +269,7 @@ class MjxBackend(Backend):
         self.preload(plans)
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
-        self._buckets = make_buckets(list(self._known.values()))
+        self._buckets = make_buckets(list(self._known.values()), merge=self.merge)
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
@@ -308,7 +285,7 @@ class MjxBackend(Backend):
         self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
                                     np.int32) for rows in self._rows]
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
-        hooks = _DeviceHooks({b.key: _bucket_program(b) for b in self._buckets},
+        hooks = _DeviceHooks({b.key: bucket_programs(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
                              self.impl)
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
@@ -388,7 +365,8 @@ class MjxBackend(Backend):
             clipped[k] = int(out["clipped"])
             slot.clipped_total += clipped[k]
             slot.success, slot.score = bool(out["success"]), float(out["score"])
-            layout = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout
+            layout = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout_of(
+                self._member[slot.plan.hash][1])
             slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(layout.stage_names, out["stage_step"])}
             slot.terms = dict(zip(layout.term_names, map(bool, out["terms"])))
             slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)

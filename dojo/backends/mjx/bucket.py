@@ -126,20 +126,23 @@ def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
                  if any(not np.array_equal(getattr(m, name), getattr(ref, name)) for m in models[1:]))
 
 
-def make_buckets(plans: Sequence[Plan]) -> list[Bucket]:
+def make_buckets(plans: Sequence[Plan], merge: bool = False) -> list[Bucket]:
     """Group plans into buckets of one structure each, in a deterministic order.
 
     The plans of each (task, setting) are first padded to a common structure (see pad.py), so that they need few
     buckets; settings are padded apart so that `standard` scenes do not carry `random` clutter slots. Different
-    tasks never share a bucket (their programs and names differ).
+    tasks never share a bucket. With `merge`, the plans of each (robot, setting, sub-steps) are padded together,
+    every object a slot (`pad_group(every_object=True)`), so different tasks on one robot share a bucket where
+    the rest of their scenes agree; its members then carry several tasks' programs (the backend's lanes).
     """
-    by_group: dict[tuple[str, str], list[Plan]] = defaultdict(list)
+    by_group: dict[tuple[str, str, int], list[Plan]] = defaultdict(list)
     for plan in plans:
-        by_group[plan.task, plan.setting].append(plan)
+        by_group[plan.embodiment if merge else plan.task, plan.setting, plan.n_substeps].append(plan)
     groups: dict[str, list[Member]] = defaultdict(list)
-    for (task, setting) in sorted(by_group):
-        for pp in pad_group(by_group[task, setting], task):
+    for (name, setting, substeps) in sorted(by_group):
+        for pp in pad_group(by_group[name, setting, substeps], name, every_object=merge):
             model = mujoco.MjModel.from_xml_string(pp.xml)
             qpos, qvel, ctrl = _initial_state(pp, model)
-            groups[f"{task}:{structural_signature(model)[:16]}"].append(Member(pp, model, qpos, qvel, ctrl))
+            key = f"{name}:{substeps}:" if merge else f"{name}:"
+            groups[f"{key}{structural_signature(model)[:16]}"].append(Member(pp, model, qpos, qvel, ctrl))
     return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]

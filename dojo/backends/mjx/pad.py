@@ -19,6 +19,15 @@ structure, leaving only *values* (poses, sizes, masses, colours, light parameter
 - the model, clutter, light and skybox names are canonical (name offsets are static fields), and so are clutter
   sites' sizes (`site_size` is static; clutter annotations are never read by a task's program).
 
+Merged padding (`pad_group(..., every_object=True)`, what `make_buckets(merge=True)` asks for): the same slots, but
+for every object of every plan in the group, not only clutter, so that plans of *different tasks* on one robot share
+one structure. A block slot can be any task's block: its size, mass and colour are per-environment values. Per
+key the union holds the most any plan needs (the max, not the sum), and a plan's objects fill the slots of their
+key in the order of its spec's objects, so every plan of one task whose objects have the same keys maps them to
+the same slots. Excludes inside one object (a button's cap and housing) are part of its key and are emitted for
+every slot of that key, parked or not, so they do not split the group; other references to slot elements (contact
+pairs, equalities, sensors, actuators) are renamed and, where they differ, split it.
+
 The result is one MJCF per plan plus the name map back to the plan's own names; `bucket.py` compiles them and
 groups by the exact structural signature, so anything this module does not equalise simply splits a bucket.
 """
@@ -56,17 +65,54 @@ class PaddedPlan:
     """Top-level body names of the slots this plan leaves unused."""
 
 
-def _clutter_bodies(plan: Plan, world: ET.Element) -> list[ET.Element]:
-    names = [o["body"] for o in plan.objects.values() if o.get("clutter")]
+_REFERENCES = {"body": "body", "body1": "body", "body2": "body", "joint": "joint", "joint1": "joint",
+               "joint2": "joint", "site": "site", "site1": "site", "site2": "site", "geom": "geom", "geom1": "geom",
+               "geom2": "geom"}
+"""Attributes outside the worldbody that name an element, and the element's tag (renamed with the slot bodies)."""
+
+
+def _slot_bodies(plan: Plan, world: ET.Element, every_object: bool) -> list[ET.Element]:
+    """The plan's slot bodies in the order of its objects: its clutter, or every object's top-level body."""
     by_name = {b.get("name"): b for b in world.findall("body")}
-    missing = [n for n in names if n not in by_name]
-    if missing:
-        raise ValueError(f"plan {plan.hash[:12]}: clutter bodies {missing} are not top-level bodies")
-    return [by_name[n] for n in names]
+    if not every_object:
+        names = [o["body"] for o in plan.objects.values() if o.get("clutter")]
+        missing = [n for n in names if n not in by_name]
+        if missing:
+            raise ValueError(f"plan {plan.hash[:12]}: clutter bodies {missing} are not top-level bodies")
+    else:  # an object whose body sits inside another's moves with that one's slot
+        names = [o["body"] for o in plan.objects.values() if o.get("body") in by_name]
+    return [by_name[n] for n in dict.fromkeys(names)]
 
 
-def slot_key(body: ET.Element) -> str:
-    """Static signature of a clutter body: what MJX treats as structure, with its own name prefix removed."""
+def _canonical(body: ET.Element, slot: str) -> dict[tuple[str, str], str]:
+    """Canonical names of a slot body's named elements, {(tag, old name): `slot` or `slot/<tag><k>`}."""
+    mapping: dict[tuple[str, str], str] = {}
+    counts: Counter[str] = Counter()
+    for el in body.iter():
+        old = el.get("name")
+        if old is None:
+            continue
+        mapping[el.tag, old] = slot if el is body else f"{slot}/{el.tag}{counts[el.tag]}"
+        counts[el.tag] += el is not body
+    return mapping
+
+
+def _inner_excludes(body: ET.Element, excludes: Sequence[ET.Element]) -> list[ET.Element]:
+    """The contact excludes between two bodies of one slot body (an asset's own, e.g. a button's cap)."""
+    names = {el.get("name") for el in body.iter("body")}
+    return [e for e in excludes if e.get("body1") in names and e.get("body2") in names]
+
+
+def _relative_excludes(body: ET.Element, excludes: Sequence[ET.Element]) -> list[tuple[str, str]]:
+    """`_inner_excludes` by canonical names relative to the slot (`""` for its root, `/body<k>` below)."""
+    canon = _canonical(body, "")
+    return sorted((canon["body", e.get("body1")], canon["body", e.get("body2")])
+                  for e in _inner_excludes(body, excludes))
+
+
+def slot_key(body: ET.Element, excludes: Sequence[ET.Element] = ()) -> str:
+    """Static signature of a slot body: what MJX treats as structure, with its own name prefix removed, and the
+    excludes among its own bodies (an exclude changes MJX's static contact pairs)."""
     prefix = body.get("name", "") + "/"
     parts: list[str] = []
     for el in body.iter():
@@ -75,26 +121,35 @@ def slot_key(body: ET.Element) -> str:
             if k in attrs and attrs[k].startswith(prefix):
                 attrs[k] = attrs[k][len(prefix):]
         parts.append(el.tag + repr(sorted(attrs.items())))
+    inner = _relative_excludes(body, excludes)
+    if inner:
+        parts.append(f"exclude{inner!r}")
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
 
 
-def _rename(body: ET.Element, slot: str) -> dict[str, str]:
-    """Give every named element of a slot body a canonical name (`slot`, `slot/<tag><k>`); return {new: old}.
+def _rename(body: ET.Element, slot: str) -> dict[tuple[str, str], str]:
+    """Give every named element of a slot body its canonical name (`_canonical`); return that map.
 
     Name offsets are static in MJX, so two assets with the same structure but differently named geoms would
     otherwise not share a bucket.
     """
-    mapping: dict[str, str] = {}
-    counts: Counter[str] = Counter()
+    mapping = _canonical(body, slot)
     for el in body.iter():
-        old = el.get("name")
-        if old is None:
-            continue
-        new = slot if el is body else f"{slot}/{el.tag}{counts[el.tag]}"
-        counts[el.tag] += el is not body
-        el.set("name", new)
-        mapping[new] = old
+        if el.get("name") is not None:
+            el.set("name", mapping[el.tag, el.get("name")])
     return mapping
+
+
+def _rename_references(root: ET.Element, renamed: dict[tuple[str, str], str]) -> None:
+    """Rename references to renamed slot elements everywhere outside the worldbody (excludes, equalities, ...)."""
+    for section in root:
+        if section.tag in ("worldbody", "asset"):
+            continue
+        for el in section.iter():
+            for attr, tag in _REFERENCES.items():
+                new = renamed.get((tag, el.get(attr, "")))
+                if new is not None:
+                    el.set(attr, new)
 
 
 def _canonical_sites(body: ET.Element, template: ET.Element) -> None:
@@ -103,6 +158,11 @@ def _canonical_sites(body: ET.Element, template: ET.Element) -> None:
     for site, ref in zip(body.iter("site"), template.iter("site")):
         if ref.get("size") is not None:
             site.set("size", ref.get("size"))
+
+
+def _excludes(root: ET.Element) -> list[ET.Element]:
+    contact = root.find("contact")
+    return [] if contact is None else contact.findall("exclude")
 
 
 def _park(body: ET.Element, index: int) -> None:
@@ -124,38 +184,46 @@ def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
     return [copy.deepcopy(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
 
 
-def pad_group(plans: Sequence[Plan], name: str) -> list[PaddedPlan]:
-    """Rewrite the MJCF of `plans` (normally one task's plans) so that they share one structure where possible."""
+def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> list[PaddedPlan]:
+    """Rewrite the MJCF of `plans` so that they share one structure where possible: normally one task's plans,
+    with slots for their clutter; with `every_object`, plans of several tasks on one robot, with slots for every
+    object (see the module docstring)."""
     roots = [ET.fromstring(p.model_xml) for p in plans]
-    clutter = [_clutter_bodies(p, r.find("worldbody")) for p, r in zip(plans, roots)]
-    keys = [[slot_key(b) for b in bodies] for bodies in clutter]
+    excludes = [_excludes(r) for r in roots]
+    slotted = [_slot_bodies(p, r.find("worldbody"), every_object) for p, r in zip(plans, roots)]
+    keys = [[slot_key(b, ex) for b in bodies] for bodies, ex in zip(slotted, excludes)]
     slots: list[tuple[str, ET.Element]] = []  # (key, template body) in canonical order
     need: Counter[str] = Counter()
     templates: dict[str, ET.Element] = {}
-    for bodies, ks in zip(clutter, keys):
+    inner: dict[str, list[tuple[str, str]]] = {}  # key -> its excludes, relative to the slot
+    for bodies, ks, ex in zip(slotted, keys, excludes):
         for key, count in Counter(ks).items():
             need[key] = max(need[key], count)
         for body, key in zip(bodies, ks):
             templates.setdefault(key, body)
+            inner.setdefault(key, _relative_excludes(body, ex))
     for key in sorted(need):
         slots += [(key, templates[key])] * need[key]
     assets = _asset_union(roots)
     n_lights = max(len(r.find("worldbody").findall("light")) for r in roots)
 
     out: list[PaddedPlan] = []
-    for plan, root, bodies, ks in zip(plans, roots, clutter, keys):
+    for plan, root, bodies, ks, ex in zip(plans, roots, slotted, keys, excludes):
         root.set("model", name)
         world = root.find("worldbody")
         for body in bodies:
             world.remove(body)
+            for exclude in _inner_excludes(body, ex):
+                root.find("contact").remove(exclude)
         free = {key: [b for b, k in zip(bodies, ks) if k == key] for key in need}
         padded = PaddedPlan(plan, "")
+        renamed: dict[tuple[str, str], str] = {}
         for j, (key, template) in enumerate(slots):
             slot = f"slot{j}"
             if free[key]:
                 body = free[key].pop(0)
                 _canonical_sites(body, template)
-                padded.names.update(_rename(body, slot))
+                renamed.update(_rename(body, slot))
                 for el in body.iter("body"):
                     el.set("gravcomp", repr(float(el.get("gravcomp", 0.0)) or GRAVCOMP_IN_USE))
             else:
@@ -164,6 +232,13 @@ def pad_group(plans: Sequence[Plan], name: str) -> list[PaddedPlan]:
                 _park(body, j)
                 padded.parked.append(slot)
             world.append(body)
+            if inner[key]:
+                contact = root.find("contact")
+                if contact is None:
+                    contact = ET.SubElement(root, "contact")
+                contact.extend(ET.Element("exclude", {"body1": slot + a, "body2": slot + b}) for a, b in inner[key])
+        _rename_references(root, renamed)
+        padded.names.update({new: old for (_, old), new in renamed.items()})
         lights = world.findall("light")
         for k, light in enumerate(lights):
             light.set("name", f"light{k}")

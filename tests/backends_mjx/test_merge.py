@@ -1,0 +1,159 @@
+"""Buckets merged across tasks (`make_buckets(merge=True)`, `lanes`): the slots, each task's program moved into the
+merged model, the lanes' selection, and the same physics as separate buckets (one compilation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import toy_plan
+
+from dojo.backends.mjx.backend import PlanLayout
+from dojo.backends.mjx.batch import Engine
+from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.lanes import bucket_programs, select_lanes
+from dojo.backends.mjx.pad import PARK_ORIGIN
+from dojo.backends.program_types import ProgramOutput
+
+ITEMS = {"toy": (), "pair": ("ball", "box"), "twin": ("ball", "ball")}
+"""Three toy tasks: a block alone; a block, a ball and a box; a block and two balls."""
+
+
+def _plans():
+    return [toy_plan(task=task, seed=s, items=items, block_size=0.03 + 0.005 * k)
+            for k, (task, items) in enumerate(ITEMS.items()) for s in range(2)]
+
+
+def _slots(member) -> dict[str, str]:
+    """The plan's object bodies -> the slot each fills."""
+    return {old: new for new, old in member.padded.names.items() if old in {o["body"] for o in
+                                                                            member.plan.objects.values()}}
+
+
+def test_tasks_share_one_bucket_with_the_most_of_each_slot_kind_and_stable_slots():
+    plans = _plans()
+    assert len(make_buckets(plans)) == 3
+    [bucket] = make_buckets(plans, merge=True)
+    assert bucket.tasks == ("pair", "toy", "twin")
+    model = bucket.model
+    slots = [model.body(i).name for i in range(model.nbody) if model.body(i).name.startswith("slot")]
+    assert len(slots) == 4  # block, box, and two balls (twin's two, not pair's one plus twin's two)
+    by_task: dict[str, list] = {}
+    for member in bucket.members:
+        by_task.setdefault(member.plan.task, []).append(member)
+    for task, members in by_task.items():
+        first = _slots(members[0])
+        assert all(_slots(m) == first for m in members), task  # every plan of a task: the same slots
+        assert len(first) == 1 + len(ITEMS[task])
+        for member in members:
+            assert sorted(member.padded.parked) == sorted(set(slots) - set(first.values()))
+            for name in member.padded.parked:
+                body = member.model.body(name).id
+                assert member.model.body_gravcomp[body] == 1.0 and member.model.body_pos[body][2] == PARK_ORIGIN[2]
+            layout = PlanLayout.build(member.model, member.plan.model(), member.padded.names)
+            np.testing.assert_allclose(layout.qpos(member.qpos), member.plan.init_qpos)
+    assert {task: len(m[0].padded.parked) for task, m in by_task.items()} == {"toy": 3, "pair": 1, "twin": 1}
+
+
+@pytest.fixture(scope="module")
+def real_plans():
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load([])
+    return [compile_plan(library, library.get("task", task), "standard", seed)
+            for task in ("push_t", "stack_blocks", "swap_blocks", "stack_bowls") for seed in range(2)]
+
+
+def test_real_tasks_merge_into_one_bucket_and_their_programs_read_the_same_state(real_plans):
+    """Four built-in tasks (one with an exclude inside its button) on one robot: one bucket instead of four, one
+    lane per task, and each member's program, moved into the merged model, reads at the initial state what it
+    reads in the plan's own model (positions, rotations, joints, contacts)."""
+    import mujoco
+
+    from dojo.backends.predicate_program import compile_program
+    from dojo.backends.predicate_state import mujoco_state
+
+    assert len(make_buckets(real_plans)) == 4
+    [bucket] = make_buckets(real_plans, merge=True)
+    programs = bucket_programs(bucket)
+    assert len(programs.lanes) == 4
+    tasks = [m.plan.task for m in bucket.members]
+    assert all((programs.member_lane[i] == programs.member_lane[j]) == (tasks[i] == tasks[j])
+               for i in range(len(tasks)) for j in range(len(tasks)))
+    touching = []
+    for k, member in enumerate(bucket.members):
+        lane = programs.lanes[programs.member_lane[k]]
+        assert programs.layout_of(k) == lane.layout
+        source = member.plan.model()
+        own = compile_program(member.plan, source)
+        data = mujoco.MjData(member.model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
+        mujoco.mj_forward(member.model, data)
+        want = mujoco_state(own.index, own.params["const_pos"], member.plan.initial_data(source))
+        got = mujoco_state(lane.index, lane.params["const_pos"][k], data)
+        assert np.array_equal(got["contact"], want["contact"]), member.plan.task
+        touching.append(bool(want["contact"].any()))
+        for name in ("pos", "mat", "qpos", "qvel"):
+            np.testing.assert_allclose(got[name], want[name], atol=1e-6, err_msg=f"{member.plan.task} {name}")
+    assert sum(touching) >= 2  # contacts between atoms were compared, not only empty matrices
+
+
+def test_lanes_pick_each_env_its_own_program_outputs_padded_to_the_widest():
+    two_stages = ProgramOutput(success=np.array([True, True, False, False]), score=np.full(4, 50.0, np.float32),
+                               stage_step=np.array([[1, -1]] * 4, np.int32), terms=np.array([[True]] * 4))
+    three_terms = ProgramOutput(success=np.array([False] * 4), score=np.full(4, 0.0, np.float32),
+                                stage_step=np.zeros((4, 0), np.int32), terms=np.array([[False, True, True]] * 4))
+    out = select_lanes(np, np.array([0, 1, 1, 0]), [two_stages, three_terms])
+    assert out["success"].tolist() == [True, False, False, False]
+    assert out["score"].tolist() == [50.0, 0.0, 0.0, 50.0]
+    assert out["stage_step"].tolist() == [[1, -1], [-1, -1], [-1, -1], [1, -1]]
+    assert out["terms"].tolist() == [[True, False, False], [False, True, True], [False, True, True],
+                                      [True, False, False]]
+
+
+def _run(buckets, plan_rows, ticks, restart):
+    """Every plan of `plan_rows` ({hash: (bucket, row)}) in one env; reset, then `ticks` of a 0.2 m push; the plans in
+    `restart` start their episode again halfway. Returns {hash: (qpos in the plan's layout, padded qpos, member)}
+    and the engine."""
+    sizes = [sum(1 for b, _ in plan_rows.values() if b == k) for k in range(len(buckets))]
+    members = [np.zeros(n, np.int32) for n in sizes]
+    index = {m.plan.hash: (k, i) for k, b in enumerate(buckets) for i, m in enumerate(b.members)}
+    for h, (k, row) in plan_rows.items():
+        members[k][row] = index[h][1]
+    engine = Engine(buckets, sizes, "jax")
+    ctrl = [np.full((n, 1), 0.2, np.float32) for n in sizes]
+    engine.tick(members, [np.ones(n, bool) for n in sizes], [np.zeros(n, bool) for n in sizes], ctrl)
+    for t in range(ticks):
+        resets = [np.zeros(n, bool) for n in sizes]
+        if t == ticks // 2:
+            for h in restart:
+                resets[plan_rows[h][0]][plan_rows[h][1]] = True
+        engine.tick(members, resets, [~r for r in resets], ctrl)
+    qpos = {}
+    for h, (k, row) in plan_rows.items():
+        member = buckets[k].members[index[h][1]]
+        layout = PlanLayout.build(member.model, member.plan.model(), member.padded.names)
+        qpos[h] = (layout.qpos(np.asarray(engine.data[k].qpos)[row]), np.asarray(engine.data[k].qpos)[row], member)
+    return qpos, engine
+
+
+def test_merged_bucket_steps_like_separate_buckets_and_keeps_parked_slots_parked():
+    """Two tasks (a block; a block, a ball and a box): the same trajectories, restarts included, in one merged
+    bucket as in two separate ones, with one compilation."""
+    plans = [p for p in _plans() if p.task != "twin"]
+    separate, [merged] = make_buckets(plans), make_buckets(plans, merge=True)
+    rows_sep = {m.plan.hash: (k, i) for k, bucket in enumerate(separate) for i, m in enumerate(bucket.members)}
+    rows_merged = {m.plan.hash: (0, i) for i, m in enumerate(merged.members)}
+    restart = {p.hash for p in plans if p.seed == 0}
+    ticks = 6
+    want, _ = _run(separate, rows_sep, ticks, restart)
+    got, engine = _run([merged], rows_merged, ticks, restart)
+    assert engine.compilations() == 1
+    assert max(w[0][0] for w in want.values()) > 0.01  # the pushers moved: the comparison is not of rest states
+    for h in want:
+        np.testing.assert_allclose(got[h][0], want[h][0], atol=1e-4, err_msg=h)
+        _, padded_qpos, member = got[h]
+        for name in member.padded.parked:
+            joint = member.model.body(name).jntadr[0]
+            z = padded_qpos[member.model.jnt_qposadr[joint] + 2]
+            assert z == pytest.approx(PARK_ORIGIN[2], abs=1e-6), (h, name)
