@@ -5,7 +5,9 @@
 - `heterogeneous`: every bucket of every task in one process, all buckets of a tick in one jitted call;
 - `homogeneous`: the same buckets with the same batch sizes, one bucket's batch at a time (its own jitted call),
   one after another: what a batched simulator without heterogeneous parallelism does with a task mix;
-- `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans.
+- `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans;
+- `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`: one
+  structure per robot where the scenes allow it), its bucket count and sizes beside its rates.
 
 The batch (`num_envs`) is shared among buckets in proportion to their plans (episodes); environment i of a
 bucket runs plan i mod n. Physics only: controls are each plan's initial controls with a +-0.1 rad swing of the
@@ -36,8 +38,9 @@ if TYPE_CHECKING:
     from dojo.backends.mjx.sharding import Placement
 
 SWING = 0.1
-MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams")
-"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp: asked for by name."""
+MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged")
+"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp and `merged` is new
+(its GPU figures are pending, issue 22): both are asked for by name."""
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
 log = logging.getLogger(__name__)
@@ -186,7 +189,7 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices), `modes` (subset of
-    heterogeneous, homogeneous, cpu; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU
+    heterogeneous, homogeneous, cpu, streams, merged; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU
     baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
@@ -285,6 +288,13 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
         controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
         out["streams"] = measure_streams(buckets, sizes, controls, steps, warmup)
+    if "merged" in modes:
+        start = time.perf_counter()
+        merged = make_buckets(plans, merge=True)
+        merge_s = time.perf_counter() - start
+        merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
+        out["merged"] = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
+                         **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest)])}
     if "cpu" in modes:
         from dojo.backends.mujoco.bench import measure_cpu
 
@@ -295,7 +305,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
                       **_cpu_figures(cpu, substeps)}
     ratios = {}
     for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu"),
-                 ("streams", "homogeneous"), ("streams", "heterogeneous")):
+                 ("streams", "homogeneous"), ("streams", "heterogeneous"), ("merged", "heterogeneous"),
+                 ("merged", "homogeneous")):
         if a in out and b in out:
             ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
     out["ratios"] = ratios

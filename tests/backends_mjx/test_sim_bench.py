@@ -35,6 +35,24 @@ def test_bench_sim_prints_one_json_object_with_both_modes(tmp_path):
     assert {"device", "jax", "mujoco", "mujoco_mjx", "peak_device_bytes_per_env"} <= set(out)
 
 
+def test_bench_sim_merged_mode_reports_its_buckets_beside_the_separate_ones(tmp_path):
+    """Two toy tasks (the plans of test_merge.py's engine test, so the compilation cache serves both): two buckets
+    stepped in one tick against one merged bucket, each with its rates and one compilation."""
+    for k, (task, items) in enumerate({"toy": (), "pair": ("ball", "box")}.items()):
+        for s in range(2):
+            toy_plan(task=task, seed=s, items=items, block_size=0.03 + 0.005 * k).save(tmp_path / f"{task}-{s}.json")
+    cfg = {"what": "sim", "plans": str(tmp_path), "num_envs": 4, "steps": 2, "warmup": 1,
+           "backend": {"name": "mjx", "impl": "jax"}, "modes": ["heterogeneous", "merged"], "cache_dir": CACHE_DIR}
+    out = json.loads(json.dumps(bench_sim(cfg)))
+    assert out["tasks"] == ["pair", "toy"] and out["buckets"] == 2 and out["bucket_sizes"] == [2, 2]
+    assert out["merged"]["buckets"] == 1 and out["merged"]["bucket_sizes"] == [4]
+    for mode in ("heterogeneous", "merged"):
+        assert out[mode]["interactions_per_s"] > 0 and out[mode]["compilations"] == 1
+    assert out["ratios"]["merged_over_heterogeneous"] == pytest.approx(
+        out["merged"]["interactions_per_s"] / out["heterogeneous"]["interactions_per_s"])
+    assert "homogeneous" not in out
+
+
 def test_split_batch_is_proportional_and_complete():
     plans = [toy_plan(seed=s) for s in range(3)] + [toy_plan(task="other", block_size=0.05)]
     buckets = make_buckets(plans)
@@ -79,9 +97,10 @@ def test_dojo_bench_sim_refuses_mjx_modes_on_the_mujoco_backend(tmp_path):
     assert "heterogeneous and homogeneous are modes of backend=mjx" in result.stderr
 
 
-def test_streams_mode_is_asked_for_by_name_only():
-    """`streams` runs MuJoCo Warp (NVIDIA GPUs): the default modes, which also run on a CPU, leave it out."""
+def test_streams_and_merged_modes_are_asked_for_by_name_only():
+    """`streams` runs MuJoCo Warp (NVIDIA GPUs) and `merged` awaits its GPU figures: the default modes leave them
+    out."""
     from dojo.bench.sim_bench import _modes
 
-    assert "streams" not in _modes("mjx", None)
+    assert "streams" not in _modes("mjx", None) and "merged" not in _modes("mjx", None)
     assert _modes("mjx", ["heterogeneous", "streams"]) == ("heterogeneous", "streams")
