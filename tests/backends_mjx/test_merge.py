@@ -98,6 +98,19 @@ def test_real_tasks_merge_into_one_bucket_and_their_programs_read_the_same_state
     assert sum(touching) >= 2  # contacts between atoms were compared, not only empty matrices
 
 
+def test_warp_contact_budget_of_a_merged_bucket_counts_only_the_slots_members_use(real_plans):
+    """Most slots of a merged bucket are parked; their geoms never touch, so the contacts allocated per world are
+    what the most demanding task needs on its own, not what the union of every task's objects would."""
+    from dojo.backends.mjx.batch import contact_capacity
+
+    separate, [merged] = make_buckets(real_plans), make_buckets(real_plans, merge=True)
+    contacts, rows = contact_capacity(merged)
+    assert contacts == max(contact_capacity(b)[0] for b in separate)
+    assert rows >= max(contact_capacity(b)[1] for b in separate)
+    model = merged.model
+    assert contacts < 4 * int(np.sum((model.geom_contype != 0) | (model.geom_conaffinity != 0)))
+
+
 def test_lanes_pick_each_env_its_own_program_outputs_padded_to_the_widest():
     two_stages = ProgramOutput(success=np.array([True, True, False, False]), score=np.full(4, 50.0, np.float32),
                                stage_step=np.array([[1, -1]] * 4, np.int32), terms=np.array([[True]] * 4))

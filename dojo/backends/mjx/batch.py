@@ -64,13 +64,22 @@ def contact_capacity(bucket: Bucket) -> tuple[int, int]:
     Warp preallocates contact and constraint buffers; too few drops contacts (detected: `Engine.check_overflow`),
     too many costs memory. Grasps and stacked objects touch with a few points per colliding geom, so the contact
     budget scales with the colliding geoms; an elliptic cone contact takes up to 6 rows (condim 6), plus rows for
-    limits and equalities. Both are raised to REST_MARGIN times the most any member has at rest.
+    limits and equalities. Both are raised to REST_MARGIN times the most any member has at rest. Geoms of parked
+    slots (far from the scene and from each other) never touch: a geom counts for the member that uses it, and the
+    budget is the most any member needs, which matters for buckets merged across tasks (most slots parked).
     """
     m = bucket.model
-    colliding = int(np.sum((m.geom_contype != 0) | (m.geom_conaffinity != 0)))
+    colliding = max(_live_colliding(member.model, member.padded.parked) for member in bucket.members)
     rest_contacts, rest_rows = rest_constraints(bucket)
     contacts = max(64, 4 * colliding, REST_MARGIN * rest_contacts)
     return contacts, max(6 * contacts + 2 * m.njnt + 4 * m.neq, REST_MARGIN * rest_rows)
+
+
+def _live_colliding(model: mujoco.MjModel, parked: Sequence[str]) -> int:
+    """Colliding geoms of a padded model outside its parked slots (top-level bodies named in `parked`)."""
+    parked_ids = [model.body(name).id for name in parked]
+    live = ~np.isin(model.body_rootid[model.geom_bodyid], parked_ids)
+    return int(np.sum(((model.geom_contype != 0) | (model.geom_conaffinity != 0)) & live))
 
 
 def rest_constraints(bucket: Bucket) -> tuple[int, int]:
