@@ -11,7 +11,7 @@ Per tick and bucket, traced once: actions in every mode (a per-env mode id picks
 `delta_ee`, so one program serves all four) become actuator controls with `dojo.backends.actions`; the ee modes
 solve the same damped-least-squares IK as the CPU backend, batched on the device with MJX kinematics and
 Jacobians (`IK_ITERATIONS` steps in a `fori_loop`, skipped by a `cond` when no env of the bucket asks for ee);
-physics sub-steps; `mjx.forward`; the predicate state (`gather_state`)
+physics sub-steps; kinematics and tendons (`_DeviceHooks.refresh`); the predicate state (`gather_state`)
 and the program (`program_step`) with the plans' params gathered by member, once per lane of the bucket (one lane
 per task; a bucket merged across tasks, `merge=True`, has several, see `lanes`); proprioception as in the CPU
 backend's `RobotIndex.proprioception`.
@@ -78,10 +78,19 @@ INPUT_WIDTH = 2 * A.EE_PER_ARM
 class _DeviceHooks(Hooks):
     """Actions, predicates and proprioception inside the tick (see module docstring)."""
 
-    forward = True
-
     def __init__(self, programs: dict[str, BucketPrograms], robots: dict[str, RobotIndex], impl: str):
         self.programs, self.robots, self.impl = programs, robots, impl
+
+    def refresh(self, m: Tree, d: Tree) -> Tree:
+        """What the predicates and proprioception read, at the state the sub-steps reached: body and site poses
+        (kinematics), tendon lengths and speeds (the grippers). Contacts stay those the last sub-step found, as
+        the CPU backend reads them after `mj_step`. A full `mjx.forward` here (collision, constraints, solver)
+        was a second copy of the physics in the traced tick: 44% of the `jax` tick's program on a real plan, and
+        minutes of XLA compilation on a CPU. Under `warp` the forward is one Warp call, cheap to compile."""
+        if self.impl == "warp":
+            return mjx.forward(m, d)
+        d = mjx.tendon(m, mjx.kinematics(m, d))
+        return d.tree_replace({"_impl.ten_velocity": d._impl.ten_J @ d.qvel})
 
     def init_extra(self, arr: BucketArrays) -> Tree:
         """One predicate memory per lane of the bucket (`lanes`), each for the whole batch."""

@@ -154,8 +154,10 @@ class Hooks:
     `observe` runs after the physics, on up-to-date positions, and returns the new extra state and the outputs.
     """
 
-    forward = False
-    """Run a full `mjx.forward` after the sub-steps (tendon lengths, sensors) instead of kinematics only."""
+    def refresh(self, m: Tree, d: Tree) -> Tree:
+        """One environment's derived quantities brought up to date with its new state after the sub-steps, for
+        `observe` (traced per environment under `vmap`). Kinematics only by default: all the benchmark reads."""
+        return mjx.kinematics(m, d)
 
     def init_extra(self, arr: BucketArrays) -> Tree:
         return ()
@@ -188,7 +190,7 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     step = jax.vmap(mjx.step, in_axes=(arr.in_axes, 0))
     stepped = jax.lax.fori_loop(0, arr.bucket.n_substeps, lambda _, d: step(m, d), driven)
     data = _select(stepping, stepped, data)
-    data = jax.vmap(mjx.forward if hooks.forward else mjx.kinematics, in_axes=(arr.in_axes, 0))(m, data)
+    data = jax.vmap(hooks.refresh, in_axes=(arr.in_axes, 0))(m, data)
     extra, outputs = hooks.observe(arr, m, data, extra, member, reset, stepping, aux, steps)
     return data, extra, outputs
 
