@@ -1,7 +1,12 @@
-"""Buckets merged across tasks (`make_buckets(merge=True)`, `lanes`): the slots, each task's program moved into the
+"""Buckets merged across tasks (`make_buckets(merge=True)`, `lanes`): which tasks merge (merge_groups.py: only where
+the merged model stays within the growth bound and is one structure), the slots, each task's program moved into the
 merged model, the lanes' selection, and the same physics as separate buckets (one compilation)."""
 
 from __future__ import annotations
+
+import dataclasses
+import math
+import random
 
 import numpy as np
 import pytest
@@ -11,6 +16,7 @@ from dojo.backends.mjx.backend import PlanLayout
 from dojo.backends.mjx.batch import Engine
 from dojo.backends.mjx.bucket import make_buckets
 from dojo.backends.mjx.lanes import bucket_programs, select_lanes
+from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.pad import PARK_ORIGIN
 from dojo.backends.program_types import ProgramOutput
 
@@ -30,9 +36,11 @@ def _slots(member) -> dict[str, str]:
 
 
 def test_tasks_share_one_bucket_with_the_most_of_each_slot_kind_and_stable_slots():
+    """The full union (`growth=math.inf`): the three tasks' union (block, box, two balls: 25 DoFs) is 1.32x the
+    largest task's own (19), past the default bound, and what is tested here is the slots of one union."""
     plans = _plans()
     assert len(make_buckets(plans)) == 3
-    [bucket] = make_buckets(plans, merge=True)
+    [bucket] = make_buckets(plans, merge=True, growth=math.inf)
     assert bucket.tasks == ("pair", "toy", "twin")
     model = bucket.model
     slots = [model.body(i).name for i in range(model.nbody) if model.body(i).name.startswith("slot")]
@@ -54,6 +62,82 @@ def test_tasks_share_one_bucket_with_the_most_of_each_slot_kind_and_stable_slots
     assert {task: len(m[0].padded.parked) for task, m in by_task.items()} == {"toy": 3, "pair": 1, "twin": 1}
 
 
+def _tasks_by_bucket(buckets) -> list[tuple[str, ...]]:
+    return sorted(b.tasks for b in buckets)
+
+
+def test_tasks_whose_objects_are_the_same_kinds_merge_at_no_growth():
+    """A block and a ball, sized differently per task: the merged model is each task's own, so even `growth=0`
+    merges them."""
+    plans = [toy_plan(task=task, seed=s, items=("ball",), block_size=size)
+             for task, size in (("left", 0.03), ("right", 0.04)) for s in range(2)]
+    assert len(make_buckets(plans)) == 2
+    [bucket] = make_buckets(plans, merge=True, growth=0.0)
+    assert bucket.tasks == ("left", "right") and len(bucket.members) == 4
+    own = make_buckets(plans)[0].model
+    assert (bucket.model.nv, bucket.model.ngeom) == (own.nv, own.ngeom)
+
+
+def test_a_task_that_would_grow_the_union_past_the_bound_stays_apart():
+    """`pair` (block, ball, box: 19 DoFs) and `twin` (block, two balls: 19): their union (block, box, two balls)
+    has 25, 1.32x the larger's. The default bound keeps them apart; a bound of 0.5 merges them. `toy` (a block)
+    fits inside either; ties go by task, so it joins `pair`."""
+    pair, twin = ([p for p in _plans() if p.task == task] for task in ("pair", "twin"))
+    assert GROWTH < 0.32 < 0.5
+    assert _tasks_by_bucket(make_buckets(pair + twin, merge=True)) == [("pair",), ("twin",)]
+    [both] = make_buckets(pair + twin, merge=True, growth=0.5)
+    assert both.tasks == ("pair", "twin") and both.model.nv == 25
+    assert _tasks_by_bucket(make_buckets(_plans(), merge=True)) == [("pair", "toy"), ("twin",)]
+
+
+def test_tasks_that_do_not_compile_to_one_structure_stay_apart_at_any_growth():
+    """A task with another timestep (an option: structure to MJX) never joins a cluster, not even under the full
+    union, so its bucket does not carry the others' slots; the tasks that agree with each other still merge."""
+    plans = [toy_plan(task=task, seed=s, items=("box",) if task == "bee" else ("ball",))
+             for task in ("ant", "bee", "cat") for s in range(2)]
+    plans = [dataclasses.replace(p, hash=p.hash + "-fast", model_xml=p.model_xml.replace(
+        'timestep="0.004"', 'timestep="0.002"')) if p.task == "bee" else p for p in plans]
+    merged = make_buckets(plans, merge=True, growth=math.inf)
+    assert _tasks_by_bucket(merged) == [("ant", "cat"), ("bee",)]
+    assert [b.model.nv for b in merged] == [13, 13]  # pusher, block and one ball or box each: no parked slot
+
+
+def test_merged_buckets_are_the_same_whatever_the_order_of_the_plans():
+    plans = _plans()
+    want = [(b.key, sorted(m.plan.hash for m in b.members)) for b in make_buckets(plans, merge=True)]
+    for seed in range(3):
+        shuffled = random.Random(seed).sample(plans, len(plans))
+        got = [(b.key, sorted(m.plan.hash for m in b.members)) for b in make_buckets(shuffled, merge=True)]
+        assert got == want
+
+
+SIMULATION_TASKS = ("build_tower", "classify_objects", "cover_blocks", "deposit_coin", "dlc", "fasten_screws",
+                    "general_pickup", "imitate_sorting_sequence", "insert_key", "insert_tubes",
+                    "match_and_pick_from_conveyor", "pick_from_conveyor_by_image", "play_tic_tac_toe",
+                    "play_xylophone", "plug_in_charger", "pour_balls_into_vase", "press_by_number", "push_t",
+                    "put_bottles_into_dustbin", "stack_blocks", "stack_blocks_by_language", "stack_bowls",
+                    "swap_blocks", "swap_t")
+
+
+def test_merged_simulation_tasks_stay_within_the_bound_of_their_largest_member():
+    """The 24 simulation tasks (standard seed 0): fewer buckets than separate ones, some holding several tasks, and
+    each merged model's DoFs and geoms within `1 + GROWTH` of the largest separate bucket among its plans'."""
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load([])
+    plans = [compile_plan(library, library.get("task", task), "standard", 0) for task in SIMULATION_TASKS]
+    separate, merged = make_buckets(plans), make_buckets(plans, merge=True)
+    own = {m.plan.hash: b.model for b in separate for m in b.members}
+    assert len(merged) < len(separate)
+    assert sorted(m.plan.hash for b in merged for m in b.members) == sorted(own)
+    assert any(len(b.tasks) > 1 for b in merged)
+    for bucket in merged:
+        nv = max(own[m.plan.hash].nv for m in bucket.members)
+        ngeom = max(own[m.plan.hash].ngeom for m in bucket.members)
+        assert bucket.model.nv <= (1 + GROWTH) * nv and bucket.model.ngeom <= (1 + GROWTH) * ngeom, bucket.tasks
+
+
 @pytest.fixture(scope="module")
 def real_plans():
     from dojo.compiler.plan import compile_plan
@@ -65,16 +149,17 @@ def real_plans():
 
 
 def test_real_tasks_merge_into_one_bucket_and_their_programs_read_the_same_state(real_plans):
-    """Four built-in tasks (one with an exclude inside its button) on one robot: one bucket instead of four, one
-    lane per task, and each member's program, moved into the merged model, reads at the initial state what it
-    reads in the plan's own model (positions, rotations, joints, contacts)."""
+    """Four built-in tasks (one with an exclude inside its button) on one robot, merged in full (`growth=math.inf`,
+    past the default bound): one bucket instead of four, one lane per task, and each member's program, moved into
+    the merged model, reads at the initial state what it reads in the plan's own model (positions, rotations,
+    joints, contacts)."""
     import mujoco
 
     from dojo.backends.predicate_program import compile_program
     from dojo.backends.predicate_state import mujoco_state
 
     assert len(make_buckets(real_plans)) == 4
-    [bucket] = make_buckets(real_plans, merge=True)
+    [bucket] = make_buckets(real_plans, merge=True, growth=math.inf)
     programs = bucket_programs(bucket)
     assert len(programs.lanes) == 4
     tasks = [m.plan.task for m in bucket.members]
@@ -100,10 +185,11 @@ def test_real_tasks_merge_into_one_bucket_and_their_programs_read_the_same_state
 
 def test_warp_contact_budget_of_a_merged_bucket_counts_only_the_slots_members_use(real_plans):
     """Most slots of a merged bucket are parked; their geoms never touch, so the contacts allocated per world are
-    what the most demanding task needs on its own, not what the union of every task's objects would."""
+    what the most demanding task needs on its own, not what the union of every task's objects would (the full
+    union, `growth=math.inf`, so that the union holds four tasks' objects)."""
     from dojo.backends.mjx.batch import contact_capacity
 
-    separate, [merged] = make_buckets(real_plans), make_buckets(real_plans, merge=True)
+    separate, [merged] = make_buckets(real_plans), make_buckets(real_plans, merge=True, growth=math.inf)
     contacts, rows = contact_capacity(merged)
     assert contacts == max(contact_capacity(b)[0] for b in separate)
     assert rows >= max(contact_capacity(b)[1] for b in separate)

@@ -27,6 +27,7 @@ from mujoco.mjx._src import types as mjx_types
 
 from dojo.compiler.plan import Plan
 
+from dojo.backends.mjx.merge_groups import GROWTH, Cluster, Unit, cluster, plans_of
 from dojo.backends.mjx.pad import PaddedPlan, pad_group
 
 _HINTS = typing.get_type_hints(mjx_types.Model)
@@ -126,23 +127,66 @@ def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
                  if any(not np.array_equal(getattr(m, name), getattr(ref, name)) for m in models[1:]))
 
 
-def make_buckets(plans: Sequence[Plan], merge: bool = False) -> list[Bucket]:
+def _padded_members(plans: Sequence[Plan], name: str, every_object: bool) -> dict[str, list[Member]]:
+    """The plans padded together (pad.py) and compiled, by structural signature, in signature order."""
+    out: dict[str, list[Member]] = defaultdict(list)
+    for pp in pad_group(plans, name, every_object=every_object):
+        model = mujoco.MjModel.from_xml_string(pp.xml)
+        qpos, qvel, ctrl = _initial_state(pp, model)
+        out[structural_signature(model)].append(Member(pp, model, qpos, qvel, ctrl))
+    return dict(sorted(out.items()))
+
+
+def _one_structure(units: Cluster, robot: str) -> bool:
+    """Whether one plan of each unit, padded together, compiles to one structure. One plan stands for its unit:
+    what splits plans padded together lies outside the slots (skybox, options, robot), which its plans share."""
+    padded = pad_group([u.plans[0] for u in units], robot, every_object=True)
+    return len({structural_signature(mujoco.MjModel.from_xml_string(pp.xml)) for pp in padded}) == 1
+
+
+def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float) -> list[tuple[str, list[Member]]]:
+    """The members of one robot's (setting, sub-steps) plans as (signature, members), merged across tasks where
+    `merge_groups.cluster` finds it cheap. Its units are the buckets `merge=False` would make (a task's plans
+    padded alone, by structure), each padded again with every object a slot to count what its objects cost; so a
+    merge never makes more buckets than `merge=False`, and a cluster of one unit is that bucket, renamed."""
+    units: list[Unit] = []
+    members_of: dict[str, list[Member]] = {}
+    signatures: dict[str, str] = {}
+    for task in sorted(by_task):
+        for k, alike in enumerate(_padded_members(by_task[task], task, every_object=False).values()):
+            for signature, members in _padded_members([m.plan for m in alike], robot, every_object=True).items():
+                key = f"{task}:{k}:{signature[:16]}"
+                units.append(Unit.measure(key, [m.plan for m in members], members[0].padded, members[0].model))
+                members_of[key], signatures[key] = members, signature
+    out: list[tuple[str, list[Member]]] = []
+    for units_merged in cluster(units, growth, lambda c: _one_structure(c, robot)):
+        if len(units_merged) == 1:
+            out.append((signatures[units_merged[0].key], members_of[units_merged[0].key]))
+        else:
+            out.extend(_padded_members(plans_of(units_merged), robot, every_object=True).items())
+    return out
+
+
+def make_buckets(plans: Sequence[Plan], merge: bool = False, growth: float = GROWTH) -> list[Bucket]:
     """Group plans into buckets of one structure each, in a deterministic order.
 
     The plans of each (task, setting) are first padded to a common structure (see pad.py), so that they need few
     buckets; settings are padded apart so that `standard` scenes do not carry `random` clutter slots. Different
-    tasks never share a bucket. With `merge`, the plans of each (robot, setting, sub-steps) are padded together,
-    every object a slot (`pad_group(every_object=True)`), so different tasks on one robot share a bucket where
-    the rest of their scenes agree; its members then carry several tasks' programs (the backend's lanes).
+    tasks never share a bucket. With `merge`, the tasks of each (robot, setting, sub-steps) are clustered
+    (merge_groups.py: greedily, while the merged model's DoFs and geoms stay within `1 + growth` of its largest
+    task's own; `growth=math.inf` merges every task whose scene allows it) and each cluster's plans are padded
+    together, every object a slot (`pad_group(every_object=True)`), so a bucket's members may carry several
+    tasks' programs (the backend's lanes).
     """
-    by_group: dict[tuple[str, str, int], list[Plan]] = defaultdict(list)
+    by_group: dict[tuple[str, str, int], dict[str, list[Plan]]] = defaultdict(lambda: defaultdict(list))
     for plan in plans:
-        by_group[plan.embodiment if merge else plan.task, plan.setting, plan.n_substeps].append(plan)
+        by_group[plan.embodiment if merge else plan.task, plan.setting, plan.n_substeps][plan.task].append(plan)
     groups: dict[str, list[Member]] = defaultdict(list)
     for (name, setting, substeps) in sorted(by_group):
-        for pp in pad_group(by_group[name, setting, substeps], name, every_object=merge):
-            model = mujoco.MjModel.from_xml_string(pp.xml)
-            qpos, qvel, ctrl = _initial_state(pp, model)
-            key = f"{name}:{substeps}:" if merge else f"{name}:"
-            groups[f"{key}{structural_signature(model)[:16]}"].append(Member(pp, model, qpos, qvel, ctrl))
+        if merge:
+            for signature, members in _merged(by_group[name, setting, substeps], name, growth):
+                groups[f"{name}:{substeps}:{signature[:16]}"] += members
+        else:
+            for signature, members in _padded_members(by_group[name, setting, substeps][name], name, False).items():
+                groups[f"{name}:{signature[:16]}"] += members
     return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]

@@ -63,6 +63,9 @@ class PaddedPlan:
     names: dict[str, str] = field(default_factory=dict)
     parked: list[str] = field(default_factory=list)
     """Top-level body names of the slots this plan leaves unused."""
+    slot_keys: list[str] = field(default_factory=list)
+    """The `slot_key` of every slot, in order: body `slot<j>` is a copy of key `slot_keys[j]` (what a merge costs
+    is counted per key, see merge_groups.py)."""
 
 
 _REFERENCES = {"body": "body", "body1": "body", "body2": "body", "joint": "joint", "joint1": "joint",
@@ -216,7 +219,7 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> l
             for exclude in _inner_excludes(body, ex):
                 root.find("contact").remove(exclude)
         free = {key: [b for b, k in zip(bodies, ks) if k == key] for key in need}
-        padded = PaddedPlan(plan, "")
+        padded = PaddedPlan(plan, "", slot_keys=[key for key, _ in slots])
         renamed: dict[tuple[str, str], str] = {}
         for j, (key, template) in enumerate(slots):
             slot = f"slot{j}"
