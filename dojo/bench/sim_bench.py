@@ -6,8 +6,9 @@
 - `homogeneous`: the same buckets with the same batch sizes, one bucket's batch at a time (its own jitted call),
   one after another: what a batched simulator without heterogeneous parallelism does with a task mix;
 - `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans;
-- `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`: one
-  structure per robot where the scenes allow it), its bucket count and sizes beside its rates.
+- `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`, with
+  the backend config's `merge_growth`: tasks share a structure where the scenes allow it and the merged model stays
+  within that growth of its largest task's), its bucket count, sizes and models beside its rates.
 
 The batch (`num_envs`) is shared among buckets in proportion to their plans (episodes); environment i of a
 bucket runs plan i mod n. Physics only: controls are each plan's initial controls with a +-0.1 rad swing of the
@@ -21,6 +22,7 @@ the timings and reported apart.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections import Counter
@@ -152,6 +154,12 @@ def _by_devices(runs: dict[int, dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _models(buckets: Sequence[Bucket]) -> list[dict[str, Any]]:
+    """What each bucket simulates per environment (the sizes a merge trades against the bucket count)."""
+    return [{"tasks": list(b.tasks), "plans": len(b.members), "nv": b.model.nv, "ngeom": b.model.ngeom,
+             "nbody": b.model.nbody} for b in buckets]
+
+
 def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
     seconds = sum(r["seconds"] for r in runs)
     return {"interactions_per_s": sum(r["interactions"] for r in runs) / seconds,
@@ -243,6 +251,7 @@ def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:
 def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:
     import jax
 
+    from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
     from dojo.backends.mjx.sharding import Placement, local_devices
@@ -290,10 +299,12 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         out["streams"] = measure_streams(buckets, sizes, controls, steps, warmup)
     if "merged" in modes:
         start = time.perf_counter()
-        merged = make_buckets(plans, merge=True)
+        growth = merge_growth(backend.get("merge_growth"))
+        merged = make_buckets(plans, merge=True, growth=growth)
         merge_s = time.perf_counter() - start
         merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
         out["merged"] = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
+                         "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged),
                          **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest)])}
     if "cpu" in modes:
         from dojo.backends.mujoco.bench import measure_cpu

@@ -256,3 +256,13 @@ def test_merged_bucket_steps_like_separate_buckets_and_keeps_parked_slots_parked
             joint = member.model.body(name).jntadr[0]
             z = padded_qpos[member.model.jnt_qposadr[joint] + 2]
             assert z == pytest.approx(PARK_ORIGIN[2], abs=1e-6), (h, name)
+
+
+def test_the_backend_takes_its_merge_growth_from_the_config():
+    """`backend.merge_growth` (dojo/cli/config/backend/mjx.yaml): null is the module's `GROWTH`, `.inf` the full
+    union."""
+    from dojo.backends.registry import BackendOptions, make_backend
+
+    for setting, want in ((None, GROWTH), (0.5, 0.5), (math.inf, math.inf)):
+        backend = make_backend("mjx", BackendOptions(settings={"merge": True, "merge_growth": setting}))
+        assert backend.merge and backend.merge_growth == want

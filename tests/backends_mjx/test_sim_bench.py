@@ -15,6 +15,7 @@ from conftest import CACHE_DIR, toy_plan
 
 from dojo.bench.sim_bench import bench_sim, split_batch
 from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.merge_groups import GROWTH
 
 
 def test_bench_sim_prints_one_json_object_with_both_modes(tmp_path):
@@ -46,6 +47,8 @@ def test_bench_sim_merged_mode_reports_its_buckets_beside_the_separate_ones(tmp_
     out = json.loads(json.dumps(bench_sim(cfg)))
     assert out["tasks"] == ["pair", "toy"] and out["buckets"] == 2 and out["bucket_sizes"] == [2, 2]
     assert out["merged"]["buckets"] == 1 and out["merged"]["bucket_sizes"] == [4]
+    assert out["merged"]["growth"] == GROWTH  # the backend config's merge_growth, unset: the module's default
+    assert out["merged"]["models"] == [{"tasks": ["pair", "toy"], "plans": 4, "nv": 19, "ngeom": 5, "nbody": 5}]
     for mode in ("heterogeneous", "merged"):
         assert out[mode]["interactions_per_s"] > 0 and out[mode]["compilations"] == 1
     assert out["ratios"]["merged_over_heterogeneous"] == pytest.approx(

@@ -2,6 +2,7 @@
 
 - `pad`: one task's plans rewritten to share one structure (clutter slots parked, lights/textures/names canonical);
 - `bucket`: the structural signature MJX compiles against, buckets and their per-member varying model fields;
+- `merge_groups`: which tasks of one robot share a merged bucket (only where the merged model stays small);
 - `lanes`: a bucket's predicate programs, one per task when buckets are merged across tasks, picked per env;
 - `batch`: `Engine`, every bucket's batch stepped in one jitted tick (sub-steps, resets, refills, hooks);
 - `backend`: `MjxBackend`, the `Backend` interface with actions, predicates and proprioception on the device;
@@ -34,7 +35,8 @@ if _printed.getvalue().strip():
 
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
-    (how many local devices the environments are split over, or `all`) and `merge` (buckets merged across tasks).
+    (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks) and
+    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`).
     Every plan of the run is loaded up front (`preload`), so the run compiles once."""
     from pathlib import Path
 
@@ -52,9 +54,18 @@ def make(options: BackendOptions) -> MjxBackend:
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
-                         merge=bool(options.settings.get("merge", False)))
+                         merge=bool(options.settings.get("merge", False)),
+                         merge_growth=merge_growth(options.settings.get("merge_growth")))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
+
+
+def merge_growth(setting: Any) -> float:
+    """`backend.merge_growth` as a float: null (the default) is `merge_groups.GROWTH`; `.inf` merges every task a
+    robot's scenes allow (one union, slower on the GPU)."""
+    from dojo.backends.mjx.merge_groups import GROWTH
+
+    return GROWTH if setting is None else float(setting)
 
 
 def unsupported(features: Sequence[str], settings: Mapping[str, Any]) -> dict[str, str]:

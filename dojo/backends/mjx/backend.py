@@ -48,6 +48,7 @@ from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
+from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
 
@@ -236,21 +237,22 @@ class MjxBackend(Backend):
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
-                 merge: bool = False) -> None:
+                 merge: bool = False, merge_growth: float = GROWTH) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
         model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots.
         `devices`: how many local devices every bucket's environments are split over (`sharding`); all of them by
         default, so one process uses every GPU of its host.
-        `merge`: buckets merged across tasks (`make_buckets(merge=True)`): one structure per robot where the
-        scenes allow it, each task's program a lane of its bucket (`lanes`)."""
+        `merge`: buckets merged across tasks (`make_buckets(merge=True)`): tasks of one robot share a structure
+        where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
+        (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`)."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
         self._renderers: list[CpuRenderer] = []
         self.impl = backend_impl(impl)
-        self.merge = bool(merge)
+        self.merge, self.merge_growth = bool(merge), float(merge_growth)
         log.info("mjx backend: %s", describe_impl(self.impl))
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
@@ -278,7 +280,8 @@ class MjxBackend(Backend):
         self.preload(plans)
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
-        self._buckets = make_buckets(list(self._known.values()), merge=self.merge)
+        self._buckets = make_buckets(list(self._known.values()), merge=self.merge,
+                                     growth=self.merge_growth)
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
