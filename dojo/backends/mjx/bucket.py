@@ -137,10 +137,11 @@ def _padded_members(plans: Sequence[Plan], name: str, every_object: bool) -> dic
     return dict(sorted(out.items()))
 
 
-def _one_structure(units: Cluster, robot: str) -> bool:
-    """Whether one plan of each unit, padded together, compiles to one structure. One plan stands for its unit:
-    what splits plans padded together lies outside the slots (skybox, options, robot), which its plans share."""
-    padded = pad_group([u.plans[0] for u in units], robot, every_object=True)
+def _one_structure(a: Cluster, b: Cluster, robot: str) -> bool:
+    """Whether two clusters' plans, padded together, would compile to one structure, asked of one plan of each: what
+    splits plans padded together lies outside the slots (skybox, options, equality constraints), where a cluster's
+    plans agree already, and every plan padded together gets the same slots."""
+    padded = pad_group([a[0].plans[0], b[0].plans[0]], robot, every_object=True)
     return len({structural_signature(mujoco.MjModel.from_xml_string(pp.xml)) for pp in padded}) == 1
 
 
@@ -159,7 +160,7 @@ def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float) -> list[t
                 units.append(Unit.measure(key, [m.plan for m in members], members[0].padded, members[0].model))
                 members_of[key], signatures[key] = members, signature
     out: list[tuple[str, list[Member]]] = []
-    for units_merged in cluster(units, growth, lambda c: _one_structure(c, robot)):
+    for units_merged in cluster(units, growth, lambda a, b: _one_structure(a, b, robot)):
         if len(units_merged) == 1:
             out.append((signatures[units_merged[0].key], members_of[units_merged[0].key]))
         else:

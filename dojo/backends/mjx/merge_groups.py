@@ -123,11 +123,11 @@ def _keys(cluster: Cluster) -> tuple[str, ...]:
     return tuple(u.key for u in cluster)
 
 
-def cluster(units: Sequence[Unit], growth: float, one_structure: Callable[[Cluster], bool]) -> list[Cluster]:
+def cluster(units: Sequence[Unit], growth: float, one_structure: Callable[[Cluster, Cluster], bool]) -> list[Cluster]:
     """Merge units greedily into clusters, each to be padded on its own into one bucket.
 
-    Each round merges the first candidate pair (`_candidates`) for which `one_structure(union)` holds, i.e. the
-    union's plans, padded together, compile to one structure (the caller pads one plan per unit and compiles).
+    Each round merges the first candidate pair (`_candidates`) for which `one_structure(a, b)` holds, i.e. their
+    plans, padded together, compile to one structure (the caller pads one plan of each and compiles).
     A pair that fails marks every pair of their units as apart: what splits them is outside the slots (a skybox,
     an option), so it splits any later cluster holding both too, and clusters only grow. Deterministic: units and
     candidates are taken in sorted order, so the same plans always give the same clusters.
@@ -140,8 +140,8 @@ def cluster(units: Sequence[Unit], growth: float, one_structure: Callable[[Clust
         for a, b in _candidates(clusters, growth):
             if any(frozenset((x.key, y.key)) in apart for x in a for y in b):
                 continue
-            union = tuple(sorted(a + b, key=lambda u: u.key))
-            if one_structure(union):
+            if one_structure(a, b):
+                union = tuple(sorted(a + b, key=lambda u: u.key))
                 clusters = sorted([c for c in clusters if c is not a and c is not b] + [union], key=_keys)
                 break
             apart.update(frozenset((x.key, y.key)) for x in a for y in b)
