@@ -6,11 +6,13 @@ matrix, solver) and their geoms are in the broadphase. Merging every task of a r
 slower than not merging at all (`GROWTH`). A merge pays off only where the union is barely larger than its largest
 member, e.g. two tasks whose objects are the same kinds.
 
-The unit of clustering is a `Unit`: the plans of one (task, setting, sub-steps) that share one structure when their
-task is padded alone with every object a slot (one task normally gives one unit; a task whose plans differ in
-something padding does not equalise, such as the skybox, gives one per structure). `cluster` merges units greedily,
-the pair with the least estimated growth first, while the union's estimated size stays within `1 + growth` of its
-largest unit's own and the union really is one structure (asked of the caller, which compiles).
+The unit of clustering is a `Unit`: the plans of one bucket that `merge=False` makes (one task's plans of one
+setting and sub-steps, padded alone, by structure: one task normally gives one unit, one whose plans differ in
+something padding does not equalise, such as the skybox or the objects, one per structure), measured padded with
+every object a slot. `cluster` merges units greedily, the pair with the least estimated growth first, while the
+union's estimated size stays within `1 + growth` of its largest unit's own and the union really is one structure
+(asked of the caller, which compiles). So `growth=0` merges only what costs nothing, never more buckets than
+`merge=False`, and `growth=math.inf` every task whose scene allows it.
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ class Cost:
 
 @dataclass(frozen=True)
 class Unit:
-    """Plans of one task that share one structure with every object a slot, and what their model is made of."""
+    """Plans of one task that share one structure (a `merge=False` bucket's), and what their model is made of with
+    every object a slot."""
 
     key: str
     plans: tuple[Plan, ...]
