@@ -80,14 +80,14 @@ def test_tasks_whose_objects_are_the_same_kinds_merge_at_no_growth():
 
 def test_a_task_that_would_grow_the_union_past_the_bound_stays_apart():
     """`pair` (block, ball, box: 19 DoFs) and `twin` (block, two balls: 19): their union (block, box, two balls)
-    has 25, 1.32x the larger's. The default bound keeps them apart; a bound of 0.5 merges them. `toy` (a block)
-    fits inside either; ties go by task, so it joins `pair`."""
+    has 25, 1.32x the larger's. A bound of 0.25 keeps them apart; the default, 0.5, merges them. `toy` (a block)
+    fits inside either; ties go by task, so at 0.25 it joins `pair`."""
     pair, twin = ([p for p in _plans() if p.task == task] for task in ("pair", "twin"))
-    assert GROWTH < 0.32 < 0.5
-    assert _tasks_by_bucket(make_buckets(pair + twin, merge=True)) == [("pair",), ("twin",)]
-    [both] = make_buckets(pair + twin, merge=True, growth=0.5)
+    assert 0.25 < 0.32 < GROWTH
+    assert _tasks_by_bucket(make_buckets(pair + twin, merge=True, growth=0.25)) == [("pair",), ("twin",)]
+    [both] = make_buckets(pair + twin, merge=True)
     assert both.tasks == ("pair", "twin") and both.model.nv == 25
-    assert _tasks_by_bucket(make_buckets(_plans(), merge=True)) == [("pair", "toy"), ("twin",)]
+    assert _tasks_by_bucket(make_buckets(_plans(), merge=True, growth=0.25)) == [("pair", "toy"), ("twin",)]
 
 
 def test_tasks_that_do_not_compile_to_one_structure_stay_apart_at_any_growth():
