@@ -41,8 +41,9 @@ if TYPE_CHECKING:
 
 SWING = 0.1
 MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged")
-"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp and `merged` is new
-(its GPU figures are pending, issue 22): both are asked for by name."""
+"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp, and `merged` pays
+only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower on a CPU): both are
+asked for by name."""
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
 log = logging.getLogger(__name__)
