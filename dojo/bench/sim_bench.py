@@ -8,7 +8,13 @@
 - `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans;
 - `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`, with
   the backend config's `merge_growth`: tasks share a structure where the scenes allow it and the merged model stays
-  within that growth of its largest task's), its bucket count, sizes and models beside its rates.
+  within that growth of its largest task's), its bucket count, sizes and models beside its rates;
+- `streams` (by name; MuJoCo Warp): every bucket's physics on its own CUDA stream, concurrently (`mjx.streams`),
+  with the same graphs on one stream beside it;
+- `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped.
+
+The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
+small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
 
 The batch (`num_envs`) is shared among buckets in proportion to their plans (episodes); environment i of a
 bucket runs plan i mod n. Physics only: controls are each plan's initial controls with a +-0.1 rad swing of the
@@ -21,6 +27,7 @@ the timings and reported apart.
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import os
@@ -40,7 +47,7 @@ if TYPE_CHECKING:
     from dojo.backends.mjx.sharding import Placement
 
 SWING = 0.1
-MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged")
+MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged", "merged_streams")
 """`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp, and `merged` pays
 only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower on a CPU): both are
 asked for by name."""
@@ -98,16 +105,16 @@ def _controls(bucket: Bucket, size: int) -> tuple[jax.Array, jax.Array]:
 
 
 def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
-         placement: Placement | None = None) -> dict[str, Any]:
-    """Build one engine over `buckets` (its batches split over `placement`'s devices), compile, warm up, and time
-    `steps` ticks."""
+         placement: Placement | None = None, graph_mode: object | None = None) -> dict[str, Any]:
+    """Build one engine over `buckets` (its batches split over `placement`'s devices, its Warp calls captured as
+    `graph_mode` says), compile, warm up, and time `steps` ticks."""
     import jax
     import jax.numpy as jnp
 
     from dojo.backends.mjx.batch import Engine
 
     start = time.perf_counter()
-    engine = Engine(buckets, sizes, impl, placement=placement)
+    engine = Engine(buckets, sizes, impl, placement=placement, graph_mode=graph_mode)
     members = [jnp.asarray(np.arange(n) % len(b.members), jnp.int32) for b, n in zip(buckets, sizes)]
     ones = [jnp.ones(n, bool) for n in sizes]
     zeros = [jnp.zeros(n, bool) for n in sizes]
@@ -128,9 +135,22 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
-    return {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
-            "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
-            "qpos": [np.asarray(d.qpos) for d in engine.data]}
+    out = {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
+           "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
+           "qpos": [np.asarray(d.qpos) for d in engine.data]}
+    # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
+    # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
+    del engine
+    gc.collect()
+    return out
+
+
+def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup: int) -> dict[str, Any]:
+    """The buckets' physics on one CUDA stream each, against the same graphs on one stream (`mjx.streams`)."""
+    from dojo.backends.mjx.streams import measure_streams
+
+    controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
+    return measure_streams(buckets, sizes, controls, steps, warmup)
 
 
 def _device_counts(devices: Any) -> list[int]:
@@ -197,9 +217,9 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     compiling one, default 3), `tasks` (ids; empty = all), `plans` (folder of compiled plans; else `episodes`
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
-    mix in this one run and reported under `by_devices`, batches padded for the most devices), `modes` (subset of
-    heterogeneous, homogeneous, cpu, streams, merged; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU
-    baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
+    mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
+    CUDA graph capture of Warp calls), `modes` (subset of MJX_MODES; backend=mujoco is `cpu` alone), `cpu_envs`,
+    `cpu_steps` (the size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -254,13 +274,17 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
-    from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+    from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
     from dojo.backends.mjx.sharding import Placement, local_devices
 
-    if "streams" in modes:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
+    if {"streams", "merged_streams"} & set(modes):  # JAX takes 75% of the GPU; the streams engine allocates via Warp
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
+    graphs = graph_mode(backend.get("graph_mode"), impl)
+    if {"streams", "merged_streams"} & set(modes) and impl != "warp":
+        raise ValueError("bench sim modes 'streams' and 'merged_streams' run MuJoCo Warp: they need "
+                         "backend.impl=warp on an NVIDIA GPU")
     log.info("mjx: %s", describe_impl(impl))
     if jax.default_backend() == "cpu" and modes != ("cpu",):
         log.warning("backend=mjx on a CPU: expect minutes of compilation per task; backend=mujoco measures the "
@@ -279,34 +303,33 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "buckets": len(buckets),
         "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
+        "graph_mode": backend.get("graph_mode") if graphs is not None else None,
     }
     out["devices"] = widest.count
     if "heterogeneous" in modes:
-        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n]) for n in counts}
+        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs) for n in counts}
         out["heterogeneous"] = _rates([runs[counts[-1]]])
         if len(counts) > 1:
             out["by_devices"] = _by_devices(runs)
         peak = _peak_memory()
         out["peak_device_bytes_per_env"] = None if peak is None else peak / sum(sizes)
     if "homogeneous" in modes:
-        out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup, widest) for b, n in zip(buckets, sizes)])
+        out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup, widest, graphs)
+                                     for b, n in zip(buckets, sizes)])
     if "streams" in modes:
-        from dojo.backends.mjx.streams import measure_streams
-
-        if impl != "warp":
-            raise ValueError("bench sim mode 'streams' runs MuJoCo Warp: it needs backend.impl=warp on an NVIDIA GPU")
-
-        controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
-        out["streams"] = measure_streams(buckets, sizes, controls, steps, warmup)
-    if "merged" in modes:
+        out["streams"] = _streams(buckets, sizes, steps, warmup)
+    if {"merged", "merged_streams"} & set(modes):
         start = time.perf_counter()
         growth = merge_growth(backend.get("merge_growth"))
         merged = make_buckets(plans, merge=True, growth=growth)
         merge_s = time.perf_counter() - start
         merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
-        out["merged"] = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
-                         "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged),
-                         **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest)])}
+        about = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
+                 "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged)}
+        if "merged" in modes:
+            out["merged"] = {**about, **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest, graphs)])}
+        if "merged_streams" in modes:
+            out["merged_streams"] = {**about, **_streams(merged, merged_sizes, steps, warmup)}
     if "cpu" in modes:
         from dojo.backends.mujoco.bench import measure_cpu
 
@@ -318,7 +341,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     ratios = {}
     for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu"),
                  ("streams", "homogeneous"), ("streams", "heterogeneous"), ("merged", "heterogeneous"),
-                 ("merged", "homogeneous")):
+                 ("merged", "homogeneous"), ("merged_streams", "homogeneous"), ("merged_streams", "streams")):
         if a in out and b in out:
             ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
     out["ratios"] = ratios

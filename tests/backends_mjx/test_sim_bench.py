@@ -107,3 +107,18 @@ def test_streams_and_merged_modes_are_asked_for_by_name_only():
 
     assert "streams" not in _modes("mjx", None) and "merged" not in _modes("mjx", None)
     assert _modes("mjx", ["heterogeneous", "streams"]) == ("heterogeneous", "streams")
+
+
+def test_graph_mode_names_are_checked_on_any_machine_and_ignored_under_jax():
+    from dojo.backends.mjx.cache import GRAPH_MODES, graph_mode
+
+    assert graph_mode(None, "warp") is None and graph_mode("none", "jax") is None
+    with pytest.raises(ValueError, match=r"unknown backend.graph_mode 'warpp'; choose one of .*'warp_staged'"):
+        graph_mode("warpp", "jax")
+    assert GRAPH_MODES[0] == "none"
+
+
+def test_streams_modes_refuse_the_jax_implementation(tmp_path):
+    result = _bench("backend.impl=jax", "modes=[merged_streams]", cwd=tmp_path)
+    assert result.returncode == 1
+    assert "'streams' and 'merged_streams' run MuJoCo Warp" in result.stderr

@@ -120,3 +120,30 @@ def test_the_mjx_backend_runs_warp_when_asked_on_an_nvidia_gpu(warp_ready):
     from dojo.backends.mjx.backend import MjxBackend
 
     assert MjxBackend(impl="warp").impl == "warp" and MjxBackend(impl="auto").impl == "jax"
+
+
+def test_graph_mode_none_steps_what_the_default_steps_and_allows_a_second_batch_size(warp_ready, buckets):
+    """`backend.graph_mode=none`: the same physics as MJX's default capture (WARP), and a second Engine of the same
+    structures at another batch size in one process, which the default capture refused ("unknown stream").
+    (`jax` is refused by CUDA on the H100: "Failed to create a child graph node", 2026-11-27.)"""
+    from dojo.backends.mjx.batch import Engine
+    from dojo.backends.mjx.cache import graph_mode
+
+    def final_qpos(sizes, graphs):
+        engine = Engine(buckets, sizes, "warp", graph_mode=graphs)
+        members = [np.arange(n) % len(b.members) for b, n in zip(buckets, sizes)]
+        on, off = [np.ones(n, bool) for n in sizes], [np.zeros(n, bool) for n in sizes]
+        ctrl = [np.full((n, b.model.nu), 0.2, np.float32) for b, n in zip(buckets, sizes)]
+        engine.tick(members, on, off, ctrl)
+        for _ in range(4):
+            engine.tick(members, off, on, ctrl)
+        engine.check_overflow()
+        return [np.asarray(d.qpos) for d in engine.data]
+
+    default = final_qpos([B] * len(buckets), None)
+    chosen = final_qpos([B] * len(buckets), graph_mode("none", "warp"))
+    for a, b in zip(default, chosen):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    wider = final_qpos([2 * B] * len(buckets), graph_mode("none", "warp"))
+    for a, b in zip(default, wider):
+        np.testing.assert_allclose(a, b[:B], atol=1e-5)  # world i runs member i mod n at either size

@@ -35,8 +35,9 @@ if _printed.getvalue().strip():
 
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
-    (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks) and
-    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`).
+    (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
+    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`) and
+    `graph_mode` (MJX's CUDA graph capture of Warp calls; null: MJX's default).
     Every plan of the run is loaded up front (`preload`), so the run compiles once."""
     from pathlib import Path
 
@@ -55,7 +56,8 @@ def make(options: BackendOptions) -> MjxBackend:
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
                          merge=bool(options.settings.get("merge", False)),
-                         merge_growth=merge_growth(options.settings.get("merge_growth")))
+                         merge_growth=merge_growth(options.settings.get("merge_growth")),
+                         graph_mode=options.settings.get("graph_mode"))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

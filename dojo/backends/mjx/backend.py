@@ -47,6 +47,7 @@ from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
@@ -237,7 +238,7 @@ class MjxBackend(Backend):
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
-                 merge: bool = False, merge_growth: float = GROWTH) -> None:
+                 merge: bool = False, merge_growth: float = GROWTH, graph_mode: str | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
@@ -246,14 +247,17 @@ class MjxBackend(Backend):
         default, so one process uses every GPU of its host.
         `merge`: buckets merged across tasks (`make_buckets(merge=True)`): tasks of one robot share a structure
         where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
-        (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`)."""
+        (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`).
+        `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`; None: MJX's default)."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
         self._renderers: list[CpuRenderer] = []
         self.impl = backend_impl(impl)
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
-        log.info("mjx backend: %s", describe_impl(self.impl))
+        self.graph_mode = graph_mode_of(graph_mode, self.impl)
+        log.info("mjx backend: %s%s", describe_impl(self.impl),
+                 f", CUDA graphs: {graph_mode}" if self.graph_mode is not None else "")
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
         self._engine: Engine | None = None
@@ -305,7 +309,7 @@ class MjxBackend(Backend):
         if self.render_config is not None:
             self._renderers = [CpuRenderer([m.model for m in b.members], self.render_config) for b in self._buckets]
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
-                              placement=self.placement)
+                              placement=self.placement, graph_mode=self.graph_mode)
         self.reset()
 
     def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:

@@ -111,9 +111,11 @@ class BucketArrays:
     in_axes: Tree
 
 
-def _prepare(bucket: Bucket, size: int, impl: str, placement: Placement) -> BucketArrays:
-    """The bucket's model and member table, replicated on every device of `placement`."""
-    mx = mjx.put_model(bucket.model, impl=impl)
+def _prepare(bucket: Bucket, size: int, impl: str, placement: Placement, graph_mode: object | None = None
+             ) -> BucketArrays:
+    """The bucket's model and member table, replicated on every device of `placement`; `graph_mode` (warp only,
+    `cache.graph_mode`) how MJX captures its Warp calls, MJX's default when None."""
+    mx = mjx.put_model(bucket.model, impl=impl, graph_mode=graph_mode if impl == "warp" else None)
     table = {}
     for name, rows in bucket.table().items():
         if hasattr(mx, name):  # the implementation's layout: warp keeps e.g. geom_aabb as [ngeom, 2, 3], not [ngeom, 6]
@@ -215,16 +217,18 @@ class Engine:
     member's episode; only envs with the stepping flag advance.
 
     `placement` (all local devices when None): every batch is split over its devices along the env axis
-    (`sharding`), so each size must be a multiple of their count (`Placement.padded`).
+    (`sharding`), so each size must be a multiple of their count (`Placement.padded`). `graph_mode`: MJX's CUDA
+    graph capture of Warp calls (`cache.graph_mode`; None is MJX's default).
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
-                 example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None):
+                 example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
+                 graph_mode: object | None = None):
         self.impl = impl
         self.hooks = hooks or Hooks()
         self.placement = placement or Placement.over(None, impl)
         self.placement.check(sizes)
-        self.arrays = [_prepare(b, n, impl, self.placement) for b, n in zip(buckets, sizes)]
+        self.arrays = [_prepare(b, n, impl, self.placement, graph_mode) for b, n in zip(buckets, sizes)]
         p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
         self._tick = jax.jit(p.per_device(self._tick_all, 2, 7), donate_argnums=(2, 3),
                              in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)

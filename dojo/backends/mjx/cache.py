@@ -15,6 +15,14 @@ import jax
 
 DEFAULT_CACHE_DIR = Path(os.environ.get("DOJO_JAX_CACHE", Path.home() / ".cache" / "dojo" / "jax"))
 IMPLS = ("jax", "warp")
+GRAPH_MODES = ("none", "jax", "warp", "warp_staged", "warp_staged_ex")
+"""How MJX's Warp calls are captured in CUDA graphs (`warp.JaxCallableGraphMode`, lower-cased): `warp` (MJX's
+default on a GPU: Warp captures each call's kernels and replays them), `jax` (the calls join the CUDA graph XLA
+builds of the jitted program), `warp_staged` / `warp_staged_ex` (Warp's graphs over staging buffers), `none` (plain
+kernel launches, no capture). On the H100 (2026-11-27): `warp` fails where anything frees device or host memory
+while a call captures (a second engine, an engine left to the garbage collector: "unknown stream", "operation not
+permitted when stream is capturing"); `none` stepped the same physics and survived both, at the cost of launching
+every kernel from Python; `jax` was refused by CUDA ("Failed to create a child graph node")."""
 
 
 def enable_compilation_cache(path: str | Path | None = None) -> Path:
@@ -53,6 +61,20 @@ def choose_impl(requested: str | None = None) -> str:
     if chosen == "warp":
         quiet_warp()
     return chosen
+
+
+def graph_mode(name: str | None, impl: str) -> object | None:
+    """`backend.graph_mode` as the `GraphMode` MJX's `put_model` takes: None for MJX's default, and under `impl`
+    `jax` (no Warp calls to capture). The name is checked first, so that a typo fails on any machine."""
+    if name in (None, ""):
+        return None
+    if str(name).lower() not in GRAPH_MODES:
+        raise ValueError(f"unknown backend.graph_mode {name!r}; choose one of {GRAPH_MODES} or null (MJX's default)")
+    if impl != "warp":
+        return None
+    import warp as wp
+
+    return getattr(wp.JaxCallableGraphMode, str(name).upper())
 
 
 def quiet_warp() -> None:

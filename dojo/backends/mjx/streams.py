@@ -27,6 +27,7 @@ batch per world (`dof_M0`) keeps member 0's value and is listed in the figures (
 from __future__ import annotations
 
 import dataclasses
+import gc
 import logging
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -53,6 +54,22 @@ def world_values(bucket: Bucket, size: int, name: str) -> np.ndarray:
     """A varying field's value for each of `size` worlds (world i holds member i mod n), float32."""
     rows = bucket.table()[name]
     return np.ascontiguousarray(rows[np.arange(size) % len(rows)], dtype=np.float32)
+
+
+def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, source: Any, substeps: int) -> Any:
+    """One CUDA graph of "copy the controls, then `substeps` steps", captured with Python's garbage collector held
+    back: a JAX array freed while a stream captures makes XLA free device or host memory, which CUDA refuses
+    then, and the capture fails (seen on the H100 when the streams ran after `homogeneous`'s engines)."""
+    gc.collect()
+    gc.disable()
+    try:
+        with wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
+            wp.copy(data.ctrl, source)
+            for _ in range(substeps):
+                mjw.step(model, data)
+    finally:
+        gc.enable()
+    return capture.graph
 
 
 @dataclass
@@ -107,13 +124,7 @@ class StreamEngine:
             with wp.ScopedStream(stream):
                 wp.copy(data.ctrl, sources[0])
                 mjw.step(model, data)  # loads (compiles on a cold cache) every kernel the graphs will hold
-                graphs = []
-                for src in sources:
-                    with wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
-                        wp.copy(data.ctrl, src)
-                        for _ in range(bucket.n_substeps):
-                            mjw.step(model, data)
-                    graphs.append(capture.graph)
+                graphs = [_capture(wp, mjw, stream, model, data, src, bucket.n_substeps) for src in sources]
             self.lanes.append(_Lane(bucket, size, model, data, stream, graphs, sources))
         self.synchronize()
 
