@@ -56,7 +56,9 @@ from dojo.backends.mjx.sharding import Placement, local_devices
 log = logging.getLogger(__name__)
 WARP_OPT_IN = ("on the H100 (2026-11-25) warp finished one task's episodes, but an 11-task tick took 265 s to trace "
                "and compile and then ran at 4-8 interactions/s, and a 2-task run stopped in Warp's CUDA graph "
-               "capture (an allocation while the stream was capturing); use backend.impl=warp to try it")
+               "capture (an allocation while the stream was capturing); use backend.impl=warp to try it, with "
+               "backend.graph_mode=none where the capture fails (no CUDA graphs: slower, but on the H100 it stepped "
+               "the same physics and survived what broke the capture)")
 """Why `auto` does not choose Warp for `dojo run` yet (issue 22); `dojo bench sim` measures Warp's physics."""
 
 
