@@ -19,9 +19,9 @@ physics steps/s concurrently against 320k for the same graphs on one stream (2.7
 16,384, 1.49M against 837k (1.78x) and 823k. One bucket alone gains nothing (`stack_blocks`: 3.90M either way):
 the gain is the overlap of buckets, largest where they are small.
 
-Scope. Physics only (the `streams` mode of `dojo bench sim`): no resets, predicates or observations; the
-evaluation backend still runs `Engine`. Needs an NVIDIA GPU and warp-lang. A varying field MuJoCo Warp cannot
-batch per world (`dof_M0`) keeps member 0's value and is listed in the figures (`unbatched_fields`).
+Scope. Physics only (the `streams` and `merged_streams` modes of `dojo bench sim`): no resets, predicates or
+observations; the evaluation backend still runs `Engine`. Needs an NVIDIA GPU and warp-lang. A varying field
+MuJoCo Warp cannot batch per world (`dof_M0`) keeps member 0's value and is listed in the figures (`unbatched_fields`).
 """
 
 from __future__ import annotations
