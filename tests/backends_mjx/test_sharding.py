@@ -104,29 +104,72 @@ def test_placement_pads_batches_to_the_device_count_and_names_the_fix() -> None:
         local_devices("two")
 
 
+SHARD_TASK = """kind: task
+version: 1
+id: shard_place
+dimension: generalization
+embodiment: arx_x5_bimanual
+instruction: Put the block on the plate.
+settings: {standard: {clutter: [0, 0]}}
+scene:
+  regions:
+    left: {center: [-0.2, 0.0], size: [0.2, 0.2]}
+    right: {center: [0.2, 0.0], size: [0.2, 0.2]}
+  objects:
+    - {name: block, asset: {category: test_block}, region: left, color: red}
+    - {name: plate, asset: test_plate, region: right}
+success: {on: [block, plate]}
+stages:
+  - {name: standing, when: {upright: block}}
+  - {name: close, when: {near: [block, plate, 0.4]}}
+  - {name: placed, when: {on: [block, plate]}, weight: 2}
+horizon: 4
+"""
+SHARD_SUITE = """kind: suite
+version: 1
+id: shard_mix
+tasks: [shard_place]
+episodes: 8
+seeds: [0]
+generalization_split: {standard: 1.0}
+"""
+"""The slow test's pack: the test pack's block and plate, standard scenes only (one bucket: random ones add clutter
+meshes), 4 control steps. Its layouts differ in the block's distance to the plate, so episodes 0-2 and 7 reach
+the `close` stage at their first step (score 50) and the others never do (25): a row stepped in the wrong
+environment shows."""
+
+
 @pytest.mark.slow
 def test_dojo_run_on_four_devices_records_what_one_device_records(tmp_path: Path) -> None:
-    """The user's command: `dojo run backend=mjx` with its environments split over 4 CPU devices and on 1 (the
-    default XLA flags, Eigen multi-threaded), the privileged oracle on the test pack: the same episodes, each with
-    the same success, score, steps and stage times. Minutes of XLA compilation on a CPU per device count."""
+    """The user's command: `dojo run backend=mjx` with 8 environments split over 4 CPU devices and on 1 (the
+    default XLA flags, Eigen multi-threaded), the privileged oracle: the same episodes, each with the same success,
+    score, steps and stage times. 43 minutes on the 2-core machine (2026-11-27): 16 on 4 devices, 27 on 1, about
+    2.5 of them XLA's compile, the rest the CPU stepping MJX's `jax` implementation."""
     from dojo.evaluation.results_store import ResultsStore
 
+    pack = tmp_path / "pack"
+    for folder, name, text in (("tasks", "shard_place.yaml", SHARD_TASK), ("suites", "shard_mix.yaml", SHARD_SUITE)):
+        (pack / folder).mkdir(parents=True)
+        (pack / folder / name).write_text(text)
+    (pack / "assets").mkdir()
+    for asset in (HERE.parent / "specs" / "pack" / "assets").iterdir():
+        (pack / "assets" / asset.name).write_text(asset.read_text())
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}", JAX_PLATFORMS="cpu",
                DOJO_OUTPUTS=str(tmp_path / "outputs"))
     rows = {}
     for n in (DEVICES, 1):
         store = tmp_path / f"devices{n}.sqlite"
         done = subprocess.run([sys.executable, "-m", "dojo.cli.main", "run", "backend=mjx", f"backend.devices={n}",
-                               f"packs=[{HERE.parent / 'specs' / 'pack'}]", "suite=mini_test", "seeds=[0]",
-                               "episodes=2", "num_envs=4", "progress=quiet", f"plans={tmp_path / 'plans'}",
-                               f"results={store}"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                              timeout=3600)
+                               f"packs=[{pack}]", "suite=shard_mix", "num_envs=8", "progress=quiet",
+                               f"plans={tmp_path / 'plans'}", f"results={store}"], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=3600)
         assert done.returncode == 0, done.stderr[-3000:]
         assert f"environments split over {n} cpu device(s)" in done.stderr
         with ResultsStore(store, readonly=True) as results:
             rows[n] = {r.key: (r.success, r.score, r.steps, r.stage_times) for r in results.rows()}
-    assert len(rows[1]) >= 2
+    assert len(rows[1]) == 8
     assert rows[DEVICES] == rows[1]
+    assert sorted({round(score, 3) for _, score, _, _ in rows[1].values()}) == [25.0, 50.0]
 
 
 def test_bench_reports_each_device_count_with_its_speedup_and_drift() -> None:
