@@ -48,9 +48,9 @@ if TYPE_CHECKING:
 
 SWING = 0.1
 MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged", "merged_streams")
-"""`streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) needs MuJoCo Warp, and `merged` pays
-only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower on a CPU): both are
-asked for by name."""
+"""`streams` and `merged_streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) need MuJoCo
+Warp, and `merged` pays only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower
+on a CPU): all three are asked for by name."""
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
 log = logging.getLogger(__name__)
@@ -277,12 +277,13 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
     from dojo.backends.mjx.sharding import Placement, local_devices
 
-    if {"streams", "merged_streams"} & set(modes):  # JAX takes 75% of the GPU; the streams engine allocates via Warp
+    on_streams = bool({"streams", "merged_streams"} & set(modes))
+    if on_streams:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
     graphs = graph_mode(backend.get("graph_mode"), impl)
-    if {"streams", "merged_streams"} & set(modes) and impl != "warp":
+    if on_streams and impl != "warp":
         raise ValueError("bench sim modes 'streams' and 'merged_streams' run MuJoCo Warp: they need "
                          "backend.impl=warp on an NVIDIA GPU")
     log.info("mjx: %s", describe_impl(impl))

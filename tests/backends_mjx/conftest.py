@@ -6,12 +6,14 @@ task objects of those kinds, so that tasks differ in their objects (merged bucke
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from dojo.compiler.plan import Plan
 
+TEST_ASSETS = Path(__file__).resolve().parents[1] / "specs" / "pack" / "assets"
 CACHE_DIR = os.environ.get("DOJO_TEST_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "dojo-test-jax"))
 
 
@@ -63,3 +65,17 @@ def jax_cache() -> None:
     from dojo.backends.mjx.cache import enable_compilation_cache
 
     enable_compilation_cache(CACHE_DIR)
+
+
+def write_pack(root: Path, tasks: dict[str, str], suites: dict[str, str]) -> Path:
+    """A task pack under `root/pack`: the given task and suite files (name -> YAML text) beside the test pack's
+    assets (its block and plate), for `dojo run packs=[...]` in a child process."""
+    pack = root / "pack"
+    for folder, files in {"tasks": tasks, "suites": suites}.items():
+        (pack / folder).mkdir(parents=True)
+        for name, text in files.items():
+            (pack / folder / name).write_text(text)
+    (pack / "assets").mkdir()
+    for asset in TEST_ASSETS.iterdir():
+        (pack / "assets" / asset.name).write_text(asset.read_text())
+    return pack

@@ -17,8 +17,9 @@ from pathlib import Path
 
 import pytest
 
+from conftest import write_pack
+
 pytestmark = pytest.mark.slow
-ASSETS = Path(__file__).resolve().parents[1] / "specs" / "pack" / "assets"
 
 PLACE = """kind: task
 version: 1
@@ -69,16 +70,7 @@ generalization_split: {standard: 1.0}
 
 
 def _pack(root: Path) -> Path:
-    pack = root / "pack"
-    for folder, files in {"tasks": {"merge_place.yaml": PLACE, "merge_pair.yaml": PAIR},
-                          "suites": {"merge_mix.yaml": SUITE}}.items():
-        (pack / folder).mkdir(parents=True)
-        for name, text in files.items():
-            (pack / folder / name).write_text(text)
-    (pack / "assets").mkdir()
-    for asset in ASSETS.iterdir():
-        (pack / "assets" / asset.name).write_text(asset.read_text())
-    return pack
+    return write_pack(root, {"merge_place.yaml": PLACE, "merge_pair.yaml": PAIR}, {"merge_mix.yaml": SUITE})
 
 
 def _run(tmp: Path, pack: Path, merge: bool) -> list[tuple]:

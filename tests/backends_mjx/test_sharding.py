@@ -147,13 +147,9 @@ def test_dojo_run_on_four_devices_records_what_one_device_records(tmp_path: Path
     2.5 of them XLA's compile, the rest the CPU stepping MJX's `jax` implementation."""
     from dojo.evaluation.results_store import ResultsStore
 
-    pack = tmp_path / "pack"
-    for folder, name, text in (("tasks", "shard_place.yaml", SHARD_TASK), ("suites", "shard_mix.yaml", SHARD_SUITE)):
-        (pack / folder).mkdir(parents=True)
-        (pack / folder / name).write_text(text)
-    (pack / "assets").mkdir()
-    for asset in (HERE.parent / "specs" / "pack" / "assets").iterdir():
-        (pack / "assets" / asset.name).write_text(asset.read_text())
+    from conftest import write_pack
+
+    pack = write_pack(tmp_path, {"shard_place.yaml": SHARD_TASK}, {"shard_mix.yaml": SHARD_SUITE})
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}", JAX_PLATFORMS="cpu",
                DOJO_OUTPUTS=str(tmp_path / "outputs"))
     rows = {}

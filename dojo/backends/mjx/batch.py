@@ -115,7 +115,7 @@ def _prepare(bucket: Bucket, size: int, impl: str, placement: Placement, graph_m
              ) -> BucketArrays:
     """The bucket's model and member table, replicated on every device of `placement`; `graph_mode` (warp only,
     `cache.graph_mode`) how MJX captures its Warp calls, MJX's default when None."""
-    mx = mjx.put_model(bucket.model, impl=impl, graph_mode=graph_mode if impl == "warp" else None)
+    mx = mjx.put_model(bucket.model, impl=impl, graph_mode=graph_mode)
     table = {}
     for name, rows in bucket.table().items():
         if hasattr(mx, name):  # the implementation's layout: warp keeps e.g. geom_aabb as [ngeom, 2, 3], not [ngeom, 6]

@@ -60,7 +60,6 @@ def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, source: Any,
     """One CUDA graph of "copy the controls, then `substeps` steps", captured with Python's garbage collector held
     back: a JAX array freed while a stream captures makes XLA free device or host memory, which CUDA refuses
     then, and the capture fails (seen on the H100 when the streams ran after `homogeneous`'s engines)."""
-    gc.collect()
     gc.disable()
     try:
         with wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
