@@ -116,15 +116,17 @@ def test_the_contact_pool_holds_each_worlds_mujoco_contacts(warp_ready, buckets)
             assert np.all(got[w] >= sure) and np.all(got[w] <= near), f"bucket {arr.bucket.key}, world {w}"
 
 
-def test_the_mjx_backend_runs_warp_when_asked_on_an_nvidia_gpu(warp_ready):
+def test_the_mjx_backend_runs_warp_on_an_nvidia_gpu_by_default(warp_ready):
     from dojo.backends.mjx.backend import MjxBackend
 
-    assert MjxBackend(impl="warp").impl == "warp" and MjxBackend(impl="auto").impl == "jax"
+    assert MjxBackend(impl="warp").impl == "warp" and MjxBackend(impl="auto").impl == "warp"
+    assert MjxBackend(impl="jax").impl == "jax"
 
 
-def test_graph_mode_none_steps_what_the_default_steps_and_allows_a_second_batch_size(warp_ready, buckets):
-    """`backend.graph_mode=none`: the same physics as MJX's default capture (WARP), and a second Engine of the same
-    structures at another batch size in one process, which the default capture refused ("unknown stream").
+@pytest.mark.parametrize("mode", ["none", "warp_staged", "warp_staged_ex"])
+def test_graph_modes_step_what_the_default_steps_and_allow_a_second_batch_size(warp_ready, buckets, mode):
+    """`backend.graph_mode`: the same physics as MJX's default capture (WARP), and a second Engine of the same
+    structures at another batch size in one process, which the default capture once refused ("unknown stream").
     (`jax` is refused by CUDA on the H100: "Failed to create a child graph node", 2026-11-27.)"""
     from dojo.backends.mjx.batch import Engine
     from dojo.backends.mjx.cache import graph_mode
@@ -141,9 +143,9 @@ def test_graph_mode_none_steps_what_the_default_steps_and_allows_a_second_batch_
         return [np.asarray(d.qpos) for d in engine.data]
 
     default = final_qpos([B] * len(buckets), None)
-    chosen = final_qpos([B] * len(buckets), graph_mode("none", "warp"))
+    chosen = final_qpos([B] * len(buckets), graph_mode(mode, "warp"))
     for a, b in zip(default, chosen):
         np.testing.assert_allclose(a, b, atol=1e-5)
-    wider = final_qpos([2 * B] * len(buckets), graph_mode("none", "warp"))
+    wider = final_qpos([2 * B] * len(buckets), graph_mode(mode, "warp"))
     for a, b in zip(default, wider):
         np.testing.assert_allclose(a, b[:B], atol=1e-5)  # world i runs member i mod n at either size

@@ -45,3 +45,28 @@ def test_batched_images_follow_state_and_per_env_colours(warp_ready, standard_pl
     assert np.abs(rgb[0, left].astype(int) - rgb[1, left].astype(int)).mean() > 10
     assert np.abs(rgb[0].astype(int) - rgb[2].astype(int)).mean() > 10
     np.testing.assert_array_equal(depth[0], depth[2])
+
+
+def test_the_mjx_backend_renders_its_observations_on_the_device(warp_ready, standard_plan, random_plan):
+    """`dojo run backend=mjx` on Warp: observations carry images from the engine's own state on the GPU, for the
+    slots observed, each slot its own member's scene (the random setting's colours differ from the standard)."""
+    from dojo.backends.mjx.backend import MjxBackend
+    from dojo.backends.mjx.device_cameras import BucketCameras
+
+    backend = MjxBackend(impl="warp", cameras=CAMERAS, width=64, height=48, depth=True)
+    backend.load([standard_plan, random_plan, standard_plan])
+    assert backend._renderers and all(isinstance(r, BucketCameras) for r in backend._renderers)
+    first = backend.reset()
+    for obs in first:
+        assert set(obs["images"]) == set(CAMERAS) and set(obs["depth"]) == set(CAMERAS)
+        head = obs["images"]["head"]
+        assert head.shape == (48, 64, 3) and head.dtype == np.uint8 and head.std() > 5
+        assert obs["depth"]["head"].dtype == np.uint16 and (obs["depth"]["head"] > 0).mean() > 0.9
+    np.testing.assert_array_equal(first[0]["images"]["head"], first[2]["images"]["head"])
+    assert np.abs(first[0]["images"]["head"].astype(int) - first[1]["images"]["head"].astype(int)).mean() > 1
+    joints = first[0]["state"]["joint_pos"].copy()
+    joints[:3] += 0.4  # the left arm turns: its wrist camera sees another view
+    moved = backend.step(np.tile(joints, (3, 1)), observe=[0])
+    assert "images" in moved.obs[0] and "images" not in moved.obs[1]
+    left = moved.obs[0]["images"]["left_wrist"].astype(int)
+    assert np.abs(left - first[0]["images"]["left_wrist"].astype(int)).mean() > 5

@@ -16,15 +16,16 @@ and the program (`program_step`) with the plans' params gathered by member, once
 per task; a bucket merged across tasks, `merge=True`, has several, see `lanes`); proprioception as in the CPU
 backend's `RobotIndex.proprioception`.
 
-Implementations. `impl='jax'` runs everywhere and is what `auto` chooses; `impl='warp'` (MuJoCo Warp, an NVIDIA GPU
-with mujoco-warp installed) is opt-in, for the reasons in `WARP_OPT_IN`. The two keep contacts differently: `jax` has fixed rows per environment (`Data.contact`),
-Warp one pool for the whole batch whose rows carry their world (`contact__geom`, `contact__dist`,
+Implementations. `impl='warp'` (MuJoCo Warp: an NVIDIA GPU with mujoco-warp installed) is what `auto` chooses
+where it can run (`cache.choose_impl`), `impl='jax'` elsewhere; the backend logs which. The two keep contacts
+differently: `jax` has fixed rows per environment (`Data.contact`), Warp one pool for the whole batch whose rows carry their world (`contact__geom`, `contact__dist`,
 `contact__worldid`, filled up to `nacon`), which `pool_contact_matrix` sorts into per-environment contacts. The ee
 modes' IK reads only joint positions and runs MJX's `jax` kinematics under either implementation.
 """
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -46,30 +47,15 @@ from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
-from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache
+from dojo.backends.mjx.cache import DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
+from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
 
 log = logging.getLogger(__name__)
-WARP_OPT_IN = ("on the H100 (2026-11-25) warp finished one task's episodes, but an 11-task tick took 265 s to trace "
-               "and compile and then ran at 4-8 interactions/s, and a 2-task run stopped in Warp's CUDA graph "
-               "capture (an allocation while the stream was capturing); use backend.impl=warp to try it, with "
-               "backend.graph_mode=none where the capture fails (no CUDA graphs: slower, but on the H100 it stepped "
-               "the same physics and survived what broke the capture)")
-"""Why `auto` does not choose Warp for `dojo run` yet (issue 22); `dojo bench sim` measures Warp's physics."""
-
-
-def backend_impl(requested: str | None) -> str:
-    """The implementation the backend runs: `jax` for `auto` (logged with `WARP_OPT_IN` where Warp could run),
-    `warp` or `jax` when asked by name (`warp` refused without an NVIDIA GPU and mujoco-warp)."""
-    if requested in (None, "", "auto"):
-        if choose_impl("auto") == "warp":
-            log.warning("mjx backend: impl=auto runs 'jax', not 'warp': %s", WARP_OPT_IN)
-        return "jax"
-    return choose_impl(requested)
 
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
@@ -231,8 +217,8 @@ class _Slot:
 
 
 class MjxBackend(Backend):
-    """Batched MJX backend (`impl` 'jax', 'warp' or 'auto', see the module docstring), images from the host
-    renderer. Under `warp` every tick checks MuJoCo Warp's overflow bits: a dropped contact raises
+    """Batched MJX backend (`impl` 'jax', 'warp' or 'auto', see the module docstring); images rendered on the
+    device under `warp` (`device_cameras`), on the host under `jax`. Under `warp` every tick checks MuJoCo Warp's overflow bits: a dropped contact raises
     `CapacityOverflow` instead of scoring physics that is not the plan's."""
 
     name = "mjx"
@@ -240,22 +226,25 @@ class MjxBackend(Backend):
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
-                 merge: bool = False, merge_growth: float = GROWTH, graph_mode: str | None = None) -> None:
+                 merge: bool = False, merge_growth: float = GROWTH,
+                 graph_mode: str | None = DEFAULT_GRAPH_MODE) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
-        `cameras`: the images observations carry (DESIGN section 4), rendered from each environment's padded
-        model and state with MuJoCo's renderer on the host (`render.CpuRenderer`), only for observed slots.
+        `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
+        MuJoCo Warp's batched renderer from the engine's state on the GPU (`device_cameras.BucketCameras`), under
+        `jax` from each environment's padded model and state by MuJoCo's renderer on the host (`CpuRenderer`).
         `devices`: how many local devices every bucket's environments are split over (`sharding`); all of them by
         default, so one process uses every GPU of its host.
         `merge`: buckets merged across tasks (`make_buckets(merge=True)`): tasks of one robot share a structure
         where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
         (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`).
-        `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`; None: MJX's default)."""
+        `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
+        None: MJX's own default)."""
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
-        self._renderers: list[CpuRenderer] = []
-        self.impl = backend_impl(impl)
+        self._renderers: list[CpuRenderer | BucketCameras] = []
+        self.impl = choose_impl(impl)
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
         log.info("mjx backend: %s%s", describe_impl(self.impl),
@@ -308,10 +297,14 @@ class MjxBackend(Backend):
                              self.impl)
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
         self.close()
-        if self.render_config is not None:
-            self._renderers = [CpuRenderer([m.model for m in b.members], self.render_config) for b in self._buckets]
+        self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
+        gc.collect()         # tick refers back to it, so only the collector frees it
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
                               placement=self.placement, graph_mode=self.graph_mode)
+        if self.render_config is not None:
+            self._renderers = [BucketCameras(arr, self.render_config) if self.impl == "warp" else
+                               CpuRenderer([m.model for m in arr.bucket.members], self.render_config)
+                               for arr in self._engine.arrays]
         self.reset()
 
     def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
@@ -421,9 +414,13 @@ class MjxBackend(Backend):
                           if s.bucket == k and (wanted is None or int(i) in wanted)]
                 if not picked:
                     continue
-                qpos = state(k)[0]
-                frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
-                                         [qpos[s.row] for _, s in picked])
+                if isinstance(renderer, BucketCameras):
+                    frames = renderer.frames(self._engine.arrays[k], self._engine.data[k], self._members[k],
+                                             [s.row for _, s in picked])
+                else:
+                    qpos = state(k)[0]
+                    frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
+                                             [qpos[s.row] for _, s in picked])
                 for (o, _), images in zip(picked, observation_images(frames, self.render_config.cameras)):
                     o.update(images)
         if self.privileged:
@@ -442,7 +439,8 @@ class MjxBackend(Backend):
 
     def close(self) -> None:
         for renderer in self._renderers:
-            renderer.close()
+            if isinstance(renderer, CpuRenderer):
+                renderer.close()
         self._renderers = []
 
     def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:

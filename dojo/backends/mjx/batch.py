@@ -33,6 +33,7 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.capture import run_settled
 from dojo.backends.mjx.sharding import Placement
 
 log = logging.getLogger(__name__)
@@ -139,6 +140,15 @@ def _initial_data(arr: BucketArrays, impl: str) -> Tree:
     return jax.vmap(lambda q: one().replace(qpos=q))(q0)
 
 
+def may_capture(impl: str, graph_mode: str, tick: int) -> bool:
+    """Whether tick number `tick` (0 = the first) of an engine may capture CUDA graphs (`capture`): only under
+    `warp`; in the staged modes only the first tick (one capture per call), in MJX's default mode (`warp`) every
+    tick (it captures again for every new set of buffer addresses), with `none` never."""
+    if impl != "warp" or graph_mode == "none":
+        return False
+    return tick == 0 or graph_mode == "warp"
+
+
 def _select(mask: jax.Array, new: Tree, old: Tree) -> Tree:
     """Per-environment choice between two batched states, on the per-world state fields only."""
     def pick(name: str) -> jax.Array:
@@ -218,7 +228,8 @@ class Engine:
 
     `placement` (all local devices when None): every batch is split over its devices along the env axis
     (`sharding`), so each size must be a multiple of their count (`Placement.padded`). `graph_mode`: MJX's CUDA
-    graph capture of Warp calls (`cache.graph_mode`; None is MJX's default).
+    graph capture of Warp calls (`cache.graph_mode`; None is MJX's default). Ticks that may capture run settled
+    (`capture.run_settled`): nothing is freed on the host until they finish.
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
@@ -241,6 +252,8 @@ class Engine:
                                 flags[3])
         self.data = _stable(data, tuple(s[0] for s in shapes), p)
         self.extra = _stable(extra, tuple(s[1] for s in shapes), p)
+        self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
+        self._ticks = 0
 
     def _models(self) -> tuple[Tree, ...]:
         return tuple(a.mx for a in self.arrays)
@@ -263,11 +276,12 @@ class Engine:
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
         """Advance every bucket by one control step (asynchronously: nothing waits for the device)."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
-        out = self._tick(self._models(), self._tables(), self.data, self.extra,
-                         tuple(jnp.asarray(m, jnp.int32) for m in members),
-                         tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
-                         tuple(jax.tree.map(jnp.asarray, i) for i in inputs),
-                         tuple(jnp.asarray(s, jnp.int32) for s in steps))
+        args = (self._models(), self._tables(), self.data, self.extra,
+                tuple(jnp.asarray(m, jnp.int32) for m in members),
+                tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
+                tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
+        out = run_settled(self._tick, *args) if may_capture(self.impl, self._graphs, self._ticks) else self._tick(*args)
+        self._ticks += 1
         self.data = tuple(o[0] for o in out)
         self.extra = tuple(o[1] for o in out)
         return tuple(o[2] for o in out)

@@ -16,13 +16,18 @@ import jax
 DEFAULT_CACHE_DIR = Path(os.environ.get("DOJO_JAX_CACHE", Path.home() / ".cache" / "dojo" / "jax"))
 IMPLS = ("jax", "warp")
 GRAPH_MODES = ("none", "jax", "warp", "warp_staged", "warp_staged_ex")
-"""How MJX's Warp calls are captured in CUDA graphs (`warp.JaxCallableGraphMode`, lower-cased): `warp` (MJX's
-default on a GPU: Warp captures each call's kernels and replays them), `jax` (the calls join the CUDA graph XLA
-builds of the jitted program), `warp_staged` / `warp_staged_ex` (Warp's graphs over staging buffers), `none` (plain
-kernel launches, no capture). On the H100 (2026-11-27): `warp` fails where anything frees device or host memory
-while a call captures (a second engine, an engine left to the garbage collector: "unknown stream", "operation not
-permitted when stream is capturing"); `none` stepped the same physics and survived both, at the cost of launching
-every kernel from Python; `jax` was refused by CUDA ("Failed to create a child graph node")."""
+"""How MJX's Warp calls are captured in CUDA graphs (`warp.JaxCallableGraphMode`, lower-cased): `warp` (MJX's own
+default: Warp captures each call's kernels and replays the graph for the same buffer addresses, capturing again
+for new ones), `warp_staged` / `warp_staged_ex` (one capture per call over staging buffers; each later call copies
+its inputs in and outputs out, inside the graph or beside it), `jax` (the calls join the CUDA graph XLA builds of
+the jitted program), `none` (plain kernel launches, no capture). On the H100 (2026-11-27/28): `warp` failed where
+anything freed memory while a call captured (a second engine, an engine left to the garbage collector); `none`
+stepped the same physics and survived both, launching every kernel from Python; `jax` was refused by CUDA ("Failed
+to create a child graph node"); `warp_staged` and `warp_staged_ex` stepped the same physics as `warp` and
+`warp_staged` ran `dojo run` on the mini suite (13 episodes, three calls of ~9 minutes) without a capture error."""
+DEFAULT_GRAPH_MODE = "warp_staged"
+"""What `dojo run` and `dojo bench` use (backend/mjx.yaml and `MjxBackend`): one capture per Warp call, so a run
+captures during its first tick only (`capture.run_settled` keeps the host quiet then)."""
 
 
 def enable_compilation_cache(path: str | Path | None = None) -> Path:

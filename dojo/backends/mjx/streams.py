@@ -27,7 +27,6 @@ MuJoCo Warp cannot batch per world (`dof_M0`) keeps member 0's value and is list
 from __future__ import annotations
 
 import dataclasses
-import gc
 import logging
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -36,6 +35,7 @@ import numpy as np
 
 from dojo.backends.mjx.batch import CapacityOverflow, contact_capacity, decode_overflow
 from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.capture import collector_held
 
 log = logging.getLogger(__name__)
 
@@ -58,16 +58,11 @@ def world_values(bucket: Bucket, size: int, name: str) -> np.ndarray:
 
 def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, source: Any, substeps: int) -> Any:
     """One CUDA graph of "copy the controls, then `substeps` steps", captured with Python's garbage collector held
-    back: a JAX array freed while a stream captures makes XLA free device or host memory, which CUDA refuses
-    then, and the capture fails (seen on the H100 when the streams ran after `homogeneous`'s engines)."""
-    gc.disable()
-    try:
-        with wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
-            wp.copy(data.ctrl, source)
-            for _ in range(substeps):
-                mjw.step(model, data)
-    finally:
-        gc.enable()
+    back (`capture`: nothing may be freed while a stream captures)."""
+    with collector_held(), wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
+        wp.copy(data.ctrl, source)
+        for _ in range(substeps):
+            mjw.step(model, data)
     return capture.graph
 
 

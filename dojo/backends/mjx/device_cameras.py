@@ -1,0 +1,43 @@
+"""Camera images of the mjx backend rendered on the GPU, from the simulation state where it already is.
+
+Under `impl='warp'` each bucket gets a `WarpRenderer` (MuJoCo Warp's batched ray tracer) sized to its rows. After
+a tick, `BucketCameras.frames` renders every row of the bucket in one jitted call, from the engine's own batched
+`mjx.Data` and the members' per-environment model fields (colours, lights, textures of the random setting) gathered
+from the bucket's member table, exactly as the physics sees them; only the rows asked for leave the device, as one
+uint8 (and uint16 depth) array per camera. The host renderer (`render.CpuRenderer`) remains the path under `jax`:
+it re-renders each environment from its qpos with MuJoCo's OpenGL renderer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dojo.backends.mjx.batch import BucketArrays
+from dojo.backends.mjx.capture import run_settled
+from dojo.backends.mjx.render import Frames, RenderConfig, WarpRenderer
+
+
+class BucketCameras:
+    """The observed cameras of one bucket's `nworld` rows, rendered on the device (see the module docstring)."""
+
+    def __init__(self, arrays: BucketArrays, config: RenderConfig) -> None:
+        self.renderer = WarpRenderer(arrays.bucket.model, arrays.size, config)
+        varying, in_axes = tuple(arrays.bucket.varying), arrays.in_axes
+
+        def render(mx: Any, table: dict[str, jax.Array], member: jax.Array, data: Any) -> Frames:
+            return self.renderer(mx.tree_replace({name: table[name][member] for name in varying}), data, in_axes)
+
+        self._render = jax.jit(render)
+
+    def frames(self, arrays: BucketArrays, data: Any, members: np.ndarray, rows: Sequence[int]) -> Frames:
+        """Images of `rows` of the bucket at the engine's current state `data` (`members`: every row's member
+        index), only those rows copied to the host. Run settled: the renderer's Warp calls capture CUDA graphs on
+        first use."""
+        out = run_settled(self._render, arrays.mx, arrays.table, jnp.asarray(members, jnp.int32), data)
+        pick = jnp.asarray(np.asarray(rows, np.int32))
+        return Frames(np.asarray(out.rgb[pick]), None if out.depth is None else np.asarray(out.depth[pick]))
