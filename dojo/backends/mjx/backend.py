@@ -18,9 +18,10 @@ backend's `RobotIndex.proprioception`.
 
 Implementations. `impl='warp'` (MuJoCo Warp: an NVIDIA GPU with mujoco-warp installed) is what `auto` chooses
 where it can run (`cache.choose_impl`), `impl='jax'` elsewhere; the backend logs which. The two keep contacts
-differently: `jax` has fixed rows per environment (`Data.contact`), Warp one pool for the whole batch whose rows carry their world (`contact__geom`, `contact__dist`,
-`contact__worldid`, filled up to `nacon`), which `pool_contact_matrix` sorts into per-environment contacts. The ee
-modes' IK reads only joint positions and runs MJX's `jax` kinematics under either implementation.
+differently: `jax` has fixed rows per environment (`Data.contact`), Warp one pool for the whole batch whose rows
+carry their world (`contact__geom`, `contact__dist`, `contact__worldid`, filled up to `nacon`), which
+`pool_contact_matrix` sorts into per-environment contacts. The ee modes' IK reads only joint positions and runs
+MJX's `jax` kinematics under either implementation.
 """
 
 from __future__ import annotations
@@ -218,8 +219,8 @@ class _Slot:
 
 class MjxBackend(Backend):
     """Batched MJX backend (`impl` 'jax', 'warp' or 'auto', see the module docstring); images rendered on the
-    device under `warp` (`device_cameras`), on the host under `jax`. Under `warp` every tick checks MuJoCo Warp's overflow bits: a dropped contact raises
-    `CapacityOverflow` instead of scoring physics that is not the plan's."""
+    device under `warp` (`device_cameras`), on the host under `jax`. Under `warp` every tick checks MuJoCo Warp's
+    overflow bits: a dropped contact raises `CapacityOverflow` instead of scoring physics that is not the plan's."""
 
     name = "mjx"
 
