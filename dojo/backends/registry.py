@@ -30,6 +30,8 @@ class BackendOptions:
     """Observations carry the simulator state (for privileged reference policies, the oracle, only)."""
     plan_paths: Mapping[str, str] | None = None
     """Plan hash -> plan file, for privileged observations and for backends that preload every plan."""
+    action_modes: tuple[str, ...] | None = None
+    """The action modes the policy will send (None: any); a compiling backend (mjx) builds only what they need."""
     settings: Mapping[str, Any] = field(default_factory=dict)
 
 

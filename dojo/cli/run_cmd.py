@@ -48,9 +48,11 @@ def _backend_factory(backend: dict[str, Any], metadata: Any, cameras: tuple[str,
                      plan_paths: dict[str, str] | None = None) -> Callable[[], Backend]:
     """The backend `backend` names (the `backend=<name>` config group's content, or the fallback a route chose),
     rendering `cameras` (the policy's plus those being recorded, and no others) at `size`. Only a policy whose
-    metadata says `extra.privileged` (the oracle) gets the simulator state in its observations."""
+    metadata says `extra.privileged` (the oracle) gets the simulator state in its observations. The backend is
+    told the policy's action mode, so that a compiling backend builds no other (mjx: no IK for joint actions)."""
     return factory_from_config(backend, cameras=cameras, width=size[0], height=size[1],
-                               privileged=is_privileged(metadata), plan_paths=plan_paths)
+                               privileged=is_privileged(metadata), plan_paths=plan_paths,
+                               action_modes=(metadata.action_mode,))
 
 
 def _routes(cfg: DictConfig, queue: list[PlannedEpisode], quiet: bool) -> list[tuple[dict[str, Any], list[Any]]]:

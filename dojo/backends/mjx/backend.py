@@ -69,8 +69,12 @@ INPUT_WIDTH = 2 * A.EE_PER_ARM
 class _DeviceHooks(Hooks):
     """Actions, predicates and proprioception inside the tick (see module docstring)."""
 
-    def __init__(self, programs: dict[str, BucketPrograms], robots: dict[str, RobotIndex], impl: str):
-        self.programs, self.robots, self.impl = programs, robots, impl
+    def __init__(self, programs: dict[str, BucketPrograms], robots: dict[str, RobotIndex], impl: str,
+                 ik: bool = True):
+        """`ik`: trace the ee modes' batched IK (`_ee_targets`). Without it the tick takes joint modes only: the IK
+        is most of the tick's XLA program under `warp` (one bucket of stack_blocks: 668k of the ~750k characters
+        that control and observe lower to, 9.4 s of the 11 s they take to compile on a CPU)."""
+        self.programs, self.robots, self.impl, self.ik = programs, robots, impl, ik
 
     def refresh(self, m: Tree, d: Tree) -> Tree:
         """What the predicates and proprioception read, at the state the sub-steps reached: body and site poses
@@ -94,13 +98,14 @@ class _DeviceHooks(Hooks):
         joint_dim = A.action_dim("joint", robot.limits.joints_per_arm)
         q_now = jnp.where((mode == DELTA_JOINT)[:, None, None], q_arm, 0.0)  # absolute rows add 0
         q, grip, clipped = A.joint_targets(jnp, actions[:, :joint_dim], q_now, robot.limits, delta=True)
-        is_ee = (mode == EE) | (mode == DELTA_EE)
-        q_ee, grip_ee, clipped_ee = jax.lax.cond(
-            jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE, self.impl),
-            lambda: (q, grip, clipped))
-        q = jnp.where(is_ee[:, None, None], q_ee, q)
-        grip = jnp.where(is_ee[:, None], grip_ee, grip)
-        clipped = jnp.where(is_ee, clipped_ee, clipped)
+        if self.ik:
+            is_ee = (mode == EE) | (mode == DELTA_EE)
+            q_ee, grip_ee, clipped_ee = jax.lax.cond(
+                jnp.any(is_ee), lambda: _ee_targets(arr, robot, m, data, actions, mode == DELTA_EE, self.impl),
+                lambda: (q, grip, clipped))
+            q = jnp.where(is_ee[:, None, None], q_ee, q)
+            grip = jnp.where(is_ee[:, None], grip_ee, grip)
+            clipped = jnp.where(is_ee, clipped_ee, clipped)
         ctrl = data.ctrl.at[:, robot.actuators].set(A.to_ctrl(jnp, q, grip, robot.limits.max_width))
         return ctrl, clipped
 
@@ -228,7 +233,7 @@ class MjxBackend(Backend):
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
                  merge: bool = False, merge_growth: float = GROWTH,
-                 graph_mode: str | None = DEFAULT_GRAPH_MODE) -> None:
+                 graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
@@ -240,7 +245,13 @@ class MjxBackend(Backend):
         where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
         (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`).
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
-        None: MJX's own default)."""
+        None: MJX's own default).
+        `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
+        when one of them is among these, and `step` refuses the others."""
+        self.action_modes = tuple(action_modes) if action_modes is not None else MODES
+        unknown = [m for m in self.action_modes if m not in MODES]
+        if unknown:
+            raise ValueError(f"unknown action modes {unknown}; choose from {list(MODES)}")
         enable_compilation_cache(cache_dir)
         self.privileged, self.plan_paths = privileged, dict(plan_paths or {})
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
@@ -295,7 +306,7 @@ class MjxBackend(Backend):
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: bucket_programs(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
-                             self.impl)
+                             self.impl, ik=any(m in ("ee", "delta_ee") for m in self.action_modes))
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
@@ -353,6 +364,9 @@ class MjxBackend(Backend):
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
              observe: Sequence[int] | None = None) -> StepResult:
+        if mode not in self.action_modes:
+            raise ValueError(f"this mjx backend was built for action modes {list(self.action_modes)}, not '{mode}' "
+                             "(its tick compiles only those; give the policy's mode in BackendOptions.action_modes)")
         ids = resolve_ids(env_ids, self.num_envs)
         slots = [self._slots[i] for i in ids]
         refuse_ended(ids, slots)
