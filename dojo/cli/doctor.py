@@ -57,7 +57,9 @@ def _jax() -> str:
 def _warp() -> str:
     from dojo.backends.mjx.cache import warp_available
 
-    return "available (backend.impl=warp)" if warp_available() else "not available (needs an NVIDIA GPU and mujoco-warp)"
+    if warp_available():
+        return "available (backend=mjx runs it: impl=auto)"
+    return "not available (needs an NVIDIA GPU and mujoco-warp; backend=mjx runs MJX's jax implementation)"
 
 
 def _render() -> str:
