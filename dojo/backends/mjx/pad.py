@@ -203,8 +203,9 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> l
         for key, count in Counter(ks).items():
             need[key] = max(need[key], count)
         for body, key in zip(bodies, ks):
-            templates.setdefault(key, body)
-            inner.setdefault(key, _relative_excludes(body, ex))
+            if key not in templates:  # the first body of a key is its template (its excludes computed once)
+                templates[key] = body
+                inner[key] = _relative_excludes(body, ex)
     for key in sorted(need):
         slots += [(key, templates[key])] * need[key]
     assets = _asset_union(roots)
