@@ -55,7 +55,7 @@ def test_rows_render_their_own_member_and_state_and_only_those_asked(engine, mon
     for _ in range(3):
         engine.tick([members], off, on, ctrl)
     slider = np.asarray(engine.data[0].qpos)[:, 0]
-    frames = cameras.frames(arr, engine.data[0], members, [3, 1])
+    frames = cameras.frames(engine.data[0], members, [3, 1])
     assert frames.rgb.shape == (2, 2, 3, 4, 3) and frames.depth.shape == (2, 2, 3, 4)
     assert isinstance(frames.rgb, np.ndarray)
     np.testing.assert_array_equal(frames.rgb[:, 0, 0, 0, 0], [40, 20])  # members 2 and 0: blocks of 40 and 20 mm

@@ -306,7 +306,7 @@ class MjxBackend(Backend):
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: bucket_programs(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
-                             self.impl, ik=any(m in ("ee", "delta_ee") for m in self.action_modes))
+                             self.impl, ik=any(MODES.index(m) in (EE, DELTA_EE) for m in self.action_modes))
         example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
@@ -430,8 +430,7 @@ class MjxBackend(Backend):
                 if not picked:
                     continue
                 if isinstance(renderer, BucketCameras):
-                    frames = renderer.frames(self._engine.arrays[k], self._engine.data[k], self._members[k],
-                                             [s.row for _, s in picked])
+                    frames = renderer.frames(self._engine.data[k], self._members[k], [s.row for _, s in picked])
                 else:
                     qpos = state(k)[0]
                     frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],

@@ -26,6 +26,7 @@ class BucketCameras:
     """The observed cameras of one bucket's `nworld` rows, rendered on the device (see the module docstring)."""
 
     def __init__(self, arrays: BucketArrays, config: RenderConfig) -> None:
+        self.arrays = arrays
         self.renderer = WarpRenderer(arrays.bucket.model, arrays.size, config)
         varying, in_axes = tuple(arrays.bucket.varying), arrays.in_axes
 
@@ -34,10 +35,10 @@ class BucketCameras:
 
         self._render = jax.jit(render)
 
-    def frames(self, arrays: BucketArrays, data: Any, members: np.ndarray, rows: Sequence[int]) -> Frames:
+    def frames(self, data: Any, members: np.ndarray, rows: Sequence[int]) -> Frames:
         """Images of `rows` of the bucket at the engine's current state `data` (`members`: every row's member
         index), only those rows copied to the host. Run settled: the renderer's Warp calls capture CUDA graphs on
         first use."""
-        out = run_settled(self._render, arrays.mx, arrays.table, jnp.asarray(members, jnp.int32), data)
+        out = run_settled(self._render, self.arrays.mx, self.arrays.table, jnp.asarray(members, jnp.int32), data)
         pick = jnp.asarray(np.asarray(rows, np.int32))
         return Frames(np.asarray(out.rgb[pick]), None if out.depth is None else np.asarray(out.depth[pick]))
