@@ -31,6 +31,9 @@ SERVE_OPTIONS = (
     Option("seed", "int", 0, "seed of the random policy"),
     Option("max_delta", "float", 0.05, "largest random step (rad or m) of the random policy"),
     Option("episode", "str", None, "recorded episode (.npz) for the replay policy"),
+    Option("cameras", "list", (), "cameras the reference policies ask for (and ignore): tests of the image path"),
+    Option("width", "int", None, "image width the reference policies ask for (none: any)"),
+    Option("height", "int", None, "image height the reference policies ask for (none: any)"),
     Option("log_level", "str", "info", "debug | info | warning | error"),
 )
 CHECK_OPTIONS = (
@@ -121,7 +124,8 @@ def serve_main(args: Sequence[str]) -> int:
     from xpolicylab.server import ServerConfig, run_server
 
     logging.basicConfig(level=str(opts["log_level"]).upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    config = {k: opts[k] for k in ("embodiment", "action_mode", "chunk_size", "seed", "max_delta")}
+    config = {k: opts[k] for k in ("embodiment", "action_mode", "chunk_size", "seed", "max_delta", "cameras",
+                                   "width", "height")}
     if opts["episode"] is not None:
         config["episode"] = opts["episode"]
     config.update(policy_extra)

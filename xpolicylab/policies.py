@@ -20,7 +20,9 @@ from xpolicylab.model import Model, Observation, PolicyMetadata, as_model
 
 
 class _ReferencePolicy(Model):
-    """Shared configuration: ``embodiment``, ``action_mode`` (joint|ee), ``chunk_size``."""
+    """Shared configuration: ``embodiment``, ``action_mode`` (joint|ee), ``chunk_size``; ``cameras``, ``width`` and
+    ``height``: the images the policy asks for (none by default). The reference policies never look at images;
+    asking for them makes the evaluator render and send them, which is what a test of that path needs."""
 
     policy_name = "reference"
 
@@ -33,13 +35,18 @@ class _ReferencePolicy(Model):
         self.chunk_size = int(self.config.get("chunk_size", 8))
         if self.chunk_size < 1:
             raise ValueError("chunk_size must be at least 1")
+        self.cameras = tuple(str(c) for c in self.config.get("cameras") or ())
+        self.image_size = (self.config.get("width"), self.config.get("height"))
+        if any(v is not None and int(v) < 1 for v in self.image_size):
+            raise ValueError(f"width and height must be positive, got {self.image_size}")
         self._obs: dict[Hashable, Observation] = {}
 
     @property
     def metadata(self) -> PolicyMetadata:
         return PolicyMetadata(name=self.policy_name, action_mode=self.action_mode, chunk_size=self.chunk_size,
                               action_dim=self.embodiment.action_dim(self.action_mode),
-                              embodiment=self.embodiment.name, cameras=(), image_width=None, image_height=None,
+                              embodiment=self.embodiment.name, cameras=self.cameras,
+                              image_width=_size(self.image_size[0]), image_height=_size(self.image_size[1]),
                               batch=True)
 
     def current_pose(self, obs: Observation) -> np.ndarray:
@@ -66,6 +73,10 @@ class _ReferencePolicy(Model):
 
     def update_obs_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> None:
         self._obs.update(zip(env_ids, obs_list, strict=True))
+
+
+def _size(value: Any) -> int | None:
+    return None if value is None else int(value)
 
 
 class ZeroPolicy(_ReferencePolicy):

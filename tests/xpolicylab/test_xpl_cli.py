@@ -77,3 +77,27 @@ def test_bench_full_size(capsys):
     """The issue's configuration: batch 64, three 640x480 images, both dialects (figures, not assertions)."""
     assert bench_main(["batch=64", "n=20"]) == 0
     print(capsys.readouterr().out)
+
+
+def test_a_served_reference_policy_asks_for_the_cameras_it_is_given():
+    """`cameras`, `width` and `height` make a zero policy ask for images (to exercise the image path end to end);
+    by default it asks for none, at any size."""
+    from xpolicylab.client import PolicyClient
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"port={port}",
+                             "cameras=[head,left_wrist,right_wrist]", "width=224", "height=160",
+                             "log_level=warning"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().startswith("xpolicylab serving zero")
+        with PolicyClient(f"ws://127.0.0.1:{port}") as client:
+            meta = client.connect()
+        assert meta.cameras == ("head", "left_wrist", "right_wrist")
+        assert (meta.image_width, meta.image_height) == (224, 160)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    with serving() as srv, PolicyClient(srv.url) as client:
+        meta = client.connect()
+        assert meta.cameras == () and meta.image_width is None
+    assert serve_main(["width=0"]) == 2
