@@ -119,7 +119,10 @@ class AsyncPolicyClient:
         raise ConnectionError(f"could not connect to {self.url} after {self.max_connect_attempts} attempts: {last}")
 
     async def connect(self) -> PolicyMetadata:
-        """Connect (with retries), read the server's metadata, and replay the current case after a reconnect."""
+        """Connect (with retries), read the server's metadata, and replay the current case after a reconnect.
+        Connecting again closes the current connection first (left open, it kept its server waiting on it)."""
+        if self._ws is not None:
+            await self.close()
         self._ws = await self._open()
         if self.protocol == "openpi":
             raw = await self._recv_openpi()

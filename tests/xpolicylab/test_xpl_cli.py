@@ -91,13 +91,13 @@ def test_a_served_reference_policy_asks_for_the_cameras_it_is_given():
     try:
         assert proc.stdout.readline().startswith("xpolicylab serving zero")
         with PolicyClient(f"ws://127.0.0.1:{port}") as client:
-            meta = client.connect()
+            meta = client.metadata
         assert meta.cameras == ("head", "left_wrist", "right_wrist")
         assert (meta.image_width, meta.image_height) == (224, 160)
     finally:
         proc.terminate()
         proc.wait(timeout=30)
     with serving() as srv, PolicyClient(srv.url) as client:
-        meta = client.connect()
+        meta = client.metadata
         assert meta.cameras == () and meta.image_width is None
     assert serve_main(["width=0"]) == 2

@@ -118,3 +118,12 @@ def test_reconnects_and_resumes_the_current_trial():
         assert len(client.stats) == 2
         summary = client.stats.summary()
         assert summary["count"] == 2 and summary["p50_ms"] <= summary["p99_ms"] <= summary["max_ms"]
+
+
+@pytest.mark.parametrize("protocol", ["xpolicylab", "openpi"])
+def test_connecting_again_closes_the_first_connection(protocol):
+    with serving(protocol=protocol) as srv, PolicyClient(srv.url, protocol=protocol) as client:
+        first = client._client._ws
+        client.connect()
+        assert first.state.name == "CLOSED" and client._client._ws is not first
+        assert client.infer(small_obs()).shape[-1] == 14
