@@ -131,7 +131,8 @@ def run_task(cfg: DictConfig) -> int:
             store.ensure_run(run_id, identity)
             finished = store.rows(run_id)
             if cfg.progress != "quiet":
-                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id))
+                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id),
+                                      timed_here=str(cfg.backend.name) == "mujoco")
             routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
@@ -175,8 +176,10 @@ def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[Plann
 
 
 def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,
-                          queue: list[PlannedEpisode], finished: set[tuple[str, int, int]]) -> None:
-    """Before a run that renders cameras: which, at what size, and the most it can cost here (camera_budget)."""
+                          queue: list[PlannedEpisode], finished: set[tuple[str, int, int]], timed_here: bool) -> None:
+    """Before a run that renders cameras: which, at what size, and the most it can cost (camera_budget); with
+    `timed_here` (the mujoco backend, which renders with MuJoCo's OpenGL renderer on this machine) also how long,
+    timed here. The mjx backend renders on the device, where OpenGL may not even be installed."""
     console = Console(stderr=True, soft_wrap=True)  # one line each, whatever the terminal's width
     if warning:
         console.print(f"[yellow]{escape(warning)}[/yellow]")
@@ -189,7 +192,7 @@ def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, 
     for item in todo:  # one plan per task: the horizon is the task's
         if item.task not in plans:
             plans[item.task] = Plan.load(item.plan_path)
-    rate = images_per_second(plans[todo[0].task], cameras, *size)
+    rate = images_per_second(plans[todo[0].task], cameras, *size) if timed_here else None
     console.print(escape(budget_message(meta, cameras, *size, [plans[q.task].horizon for q in todo], rate)),
                   highlight=False)
 

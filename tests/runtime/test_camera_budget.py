@@ -29,3 +29,24 @@ def test_the_message_counts_images_and_suggests_smaller_ones() -> None:
     assert line.endswith("with width=224 height=224")
     small = budget_message(meta, ("head",), 224, 224, horizons=[600], rate=None)
     assert small == "policy mine reads 1 camera(s) (head) at 224x224: up to 75 images for 1 episode(s)"
+
+
+def test_only_the_mujoco_backend_times_the_host_renderer(tmp_path, monkeypatch, capsys) -> None:
+    """The mjx backend renders on the device: a run there must not need MuJoCo's OpenGL renderer on the host (the
+    GPU machine has no EGL), so its budget line gives no time; the mujoco backend's does."""
+    from dojo.cli import run_cmd
+    from dojo.compiler.episodes import PlannedEpisode
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load([])
+    plan = compile_plan(library, library.get("task", "stack_blocks"), "standard", 0)
+    plan.save(tmp_path / "plan.json")
+    queue = [PlannedEpisode("stack_blocks", "generalization", "standard", 0, 0, 0, plan.hash, tmp_path / "plan.json")]
+    timed = []
+    monkeypatch.setattr(run_cmd, "images_per_second", lambda *args: timed.append(args) or 40.0)
+    meta = PolicyMetadata(name="mine", cameras=CAMERAS, chunk_size=8)
+    run_cmd._say_what_is_rendered(meta, CAMERAS, (224, 224), None, queue, set(), timed_here=False)
+    assert not timed and "of rendering here" not in capsys.readouterr().err
+    run_cmd._say_what_is_rendered(meta, CAMERAS, (224, 224), None, queue, set(), timed_here=True)
+    assert len(timed) == 1 and "(40 images/s measured)" in capsys.readouterr().err
