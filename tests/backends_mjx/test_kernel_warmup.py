@@ -1,7 +1,7 @@
-"""The Warp kernel warm-up's orchestration, on any machine: how many worker processes a setting means; every
-bucket's model and buffer sizes reach a worker process, the first bucket alone before the others; a failing worker
-is reported and the others still run. The compilation itself needs an NVIDIA GPU (`test_warp_gpu.py`); here a
-stand-in worker records what it was given."""
+"""The Warp kernel warm-up's orchestration, on any machine: how many worker processes a setting means, and that
+every bucket's model and buffer sizes reach a worker process of its own, a failing worker is reported and the
+others still run. The compilation itself needs an NVIDIA GPU (`test_warp_gpu.py`); here a stand-in worker
+records what it was given."""
 
 from __future__ import annotations
 
@@ -47,10 +47,6 @@ def test_each_bucket_reaches_a_worker_process_with_its_model_and_capacities(buck
         (got,) = [r for r in records if r["key"] == bucket.key]
         assert (got["nbody"], got["ngeom"]) == (bucket.model.nbody, bucket.model.ngeom)
         assert (got["contacts"], got["rows"]) == contact_capacity(bucket)
-    # the first bucket (the kernels every bucket shares) alone, then the others side by side
-    (first,) = [r for r in records if r["key"] == buckets[0].key]
-    assert all(first["end"] <= r["start"] for r in records if r is not first)
-    assert sorted(warm.bucket_s) == sorted(b.key for b in buckets) and warm.first_s <= warm.seconds
 
 
 def test_a_failing_worker_is_reported_and_the_others_still_compile(buckets, tmp_path, monkeypatch):

@@ -1,20 +1,17 @@
 """MuJoCo Warp's kernels for every bucket compiled side by side, in worker processes, before the engine needs them.
 
 Why. MuJoCo Warp generates kernels per model (its collision pairs, constraint types, solver and sizes) and Warp
-compiles each the first time a launch needs it, in the launching thread, one after another, on one CPU core while
-the machine's others idle. On one H100 (2026-11-28), the 24 simulation tasks' 29 buckets compiled 97 modules in
-140 s that way: about 40 shared by every bucket (the first bucket's 27 s: smooth dynamics, constraints, solver),
-and per bucket a few of its own (its Cholesky for its DoF count, its collision pairs: 3-19 s each).
+compiles each the first time a launch needs it, in the launching thread, one after another: on an empty kernel
+cache the 12-task mix spent about 240 of its 307 s set-up compiling (one H100, 2026-11-25), 20-53 s per collision
+kernel, on one CPU core while the machine's others idled.
 
 How. Each worker process builds one bucket's model with MuJoCo Warp (the copy MJX vendors, so the kernels are the
 ones MJX launches: MJX builds its Warp model with the same `put_model`) and steps one world once, which compiles
 every kernel a step of that structure launches and writes it to Warp's on-disk kernel cache; the engine's own
-first step then loads them from there. Two phases: one worker compiles the first bucket alone, shared kernels
-included, then the other buckets go to all workers at once, each finding the shared kernels cached and compiling
-only its own. (All buckets at once from the start compiled the shared kernels in every worker, 16 times over:
-180 s against 140 s serially.) Warp builds each module in a folder of its own process and moves it into place
-atomically, so concurrent writers are safe. Contact and constraint capacities are the engine's
-(`contact_capacity`): a dense constraint kernel is generated for its row count.
+first step then loads them from there. Warp builds each module in a folder of its own process and moves it into
+place atomically, so concurrent writers are safe. Kernels every bucket shares are compiled by several workers at
+once: CPU time spent for wall time. Contact and constraint capacities are the engine's (`contact_capacity`):
+a dense constraint kernel is generated for its row count.
 
 A worker that fails (no GPU memory left, say) costs nothing but its head start: the engine compiles what is missing
 itself, as it would without the warm-up, and the failure is logged.
@@ -26,7 +23,7 @@ import logging
 import multiprocessing
 import os
 import time
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -72,14 +69,11 @@ class Warmup:
     buckets: int
     workers: int
     seconds: float
-    first_s: float = 0.0
-    """The first phase: one worker compiling the first bucket, the kernels every bucket shares included."""
-    bucket_s: dict[str, float] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
 
     def figures(self) -> dict[str, Any]:
-        return {"buckets": self.buckets, "workers": self.workers, "seconds": self.seconds, "first_s": self.first_s,
-                "bucket_s": dict(self.bucket_s), "failed": dict(self.failed)}
+        return {"buckets": self.buckets, "workers": self.workers, "seconds": self.seconds,
+                "failed": dict(self.failed)}
 
 
 def _output_to_stderr() -> None:
@@ -122,25 +116,17 @@ def warm_kernels(buckets: Sequence[Bucket], workers: int | str | None = "auto",
     count = worker_count(workers, len(buckets))
     if not count:
         return Warmup(len(buckets), 0, 0.0)
-    jobs = jobs_for(buckets)
-    warm = Warmup(len(buckets), count, 0.0)
     start = time.perf_counter()
+    failed: dict[str, str] = {}
     with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_output_to_stderr) as pool:
-        _collect(warm, {jobs[0].key: pool.submit(compile_one, jobs[0])})
-        warm.first_s = time.perf_counter() - start
-        _collect(warm, {job.key: pool.submit(compile_one, job) for job in jobs[1:]})
-    warm.seconds = time.perf_counter() - start
-    log.info("MuJoCo Warp kernels of %d bucket(s) compiled or found cached in %.1f s by %d worker processes (the "
-             "first bucket alone: %.1f s)%s", warm.buckets, warm.seconds, count, warm.first_s,
-             f"; {len(warm.failed)} failed: {warm.failed}" if warm.failed else "")
+        futures = {job.key: pool.submit(compile_one, job) for job in jobs_for(buckets)}
+        for key, future in futures.items():
+            try:
+                log.debug("kernels of %s: %.1f s", key, future.result())
+            except Exception as error:  # the engine compiles what a failed worker left out
+                failed[key] = f"{type(error).__name__}: {error}"
+    warm = Warmup(len(buckets), count, time.perf_counter() - start, failed)
+    log.info("MuJoCo Warp kernels of %d bucket(s) compiled or found cached in %.1f s by %d worker processes%s",
+             warm.buckets, warm.seconds, count, f" ({len(failed)} failed: {failed})" if failed else "")
     return warm
-
-
-def _collect(warm: Warmup, futures: dict[str, Future[float]]) -> None:
-    """Wait for the workers' jobs; their seconds (or failures: the engine compiles what they left out) go to `warm`."""
-    for key, future in futures.items():
-        try:
-            warm.bucket_s[key] = future.result()
-        except Exception as error:
-            warm.failed[key] = f"{type(error).__name__}: {error}"
