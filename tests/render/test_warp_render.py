@@ -53,7 +53,8 @@ def test_the_mjx_backend_renders_its_observations_on_the_device(warp_ready, stan
     from dojo.backends.mjx.backend import MjxBackend
     from dojo.backends.mjx.device_cameras import BucketCameras
 
-    backend = MjxBackend(impl="warp", cameras=CAMERAS, width=64, height=48, depth=True)
+    # joint actions only: the ee modes' IK would be most of the tick's XLA program (minutes on a cold cache)
+    backend = MjxBackend(impl="warp", cameras=CAMERAS, width=64, height=48, depth=True, action_modes=("joint",))
     backend.load([standard_plan, random_plan, standard_plan])
     assert backend._renderers and all(isinstance(r, BucketCameras) for r in backend._renderers)
     first = backend.reset()
