@@ -295,7 +295,7 @@ class PolicyServer:
     async def _serve_native(self, ws: ServerConnection) -> None:
         tasks: set[asyncio.Task[None]] = set()
         peer = ws.remote_address[0] if ws.remote_address else None
-        segments = IncomingSegments(allowed=is_loopback_host(peer))
+        segments = IncomingSegments(is_loopback_host(peer), int(self.config.max_frame_mb * (1 << 20)))
         try:
             while True:
                 is_text, parts = await transport.recv_message(ws)

@@ -126,8 +126,10 @@ class OutgoingSegment:
 class IncomingSegments:
     """A server connection's view of its client's segment; `allowed` only for a same-host peer."""
 
-    def __init__(self, allowed: bool) -> None:
+    def __init__(self, allowed: bool, max_bytes: int) -> None:
+        """`max_bytes`: the most one request may bring through the segment, the server's limit on a message."""
         self.allowed = allowed
+        self.max_bytes = max_bytes
         self._shm: SharedMemory | None = None
 
     def _attach(self, name: Any) -> SharedMemory:
@@ -165,12 +167,19 @@ class IncomingSegments:
                 raise ProtocolError(ErrorCode.INVALID_FRAME, f"an array at bytes {ref.offset}-"
                                     f"{ref.offset + ref.nbytes} lies outside the {shm.size}-byte segment",
                                     {"field": "shm"})
-        copies = _Copies(shm, sum(_aligned(r.nbytes) for r in refs))
+        total = sum(_aligned(r.nbytes) for r in refs)
+        if total > self.max_bytes:
+            raise ProtocolError(ErrorCode.INVALID_FRAME, f"the request places {total} bytes in shared memory, more "
+                                f"than this server accepts in a message ({self.max_bytes})", {"field": "shm"})
+        copies = _Copies(shm, total)
         return _replace(payload, copies.take)
 
     def close(self) -> None:
         if self._shm is not None:
-            self._shm.close()
+            try:
+                self._shm.close()
+            except BufferError:  # a view of it is still alive (an error's traceback): unmapped when collected
+                pass
             self._shm = None
 
 

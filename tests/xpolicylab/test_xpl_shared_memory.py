@@ -128,9 +128,17 @@ def test_the_server_refuses_places_it_should_not_read_and_stays_usable():
 
 
 def test_only_same_host_peers_may_name_a_segment():
-    segments = IncomingSegments(allowed=False)
+    segments = IncomingSegments(allowed=False, max_bytes=1 << 30)
     with pytest.raises(ProtocolError, match="this machine only"):
         segments.resolve({"observation": {}, "shm": "xpl_" + "0" * 32})
+
+
+def test_the_server_limit_on_a_message_holds_for_shared_memory_too():
+    sent = _batch(4, 160)  # 4 x 3 images of 76,800 bytes
+    with serving(Keeper(), max_frame_mb=0.5) as srv, PolicyClient(srv.url) as client:
+        with pytest.raises(ProtocolError, match="more than this server accepts"):
+            client.infer_batch(sent, [0, 1, 2, 3])
+        client.infer_batch(sent[:1], [0])  # 230 kB: under the limit
 
 
 def test_an_array_place_is_checked_like_array_data():
