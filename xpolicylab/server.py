@@ -330,7 +330,7 @@ class PolicyServer:
                     raise ProtocolError(ErrorCode.INVALID_FRAME, "an observation must be a map")
                 payload = obs if "observations" in obs else {"observation": obs}
                 start = time.perf_counter()
-                reply = await self._infer(payload)
+                reply = await self._infer(IncomingSegments(False, 0).resolve(payload))  # openpi: no shared memory
                 reply["server_timing"] = {"infer_ms": (time.perf_counter() - start) * 1e3}
                 await transport.send_chunks(ws, codec.encode_chunks(reply, codec.Dialect.OPENPI))
             except (ProtocolError, TypeError, ValueError) as exc:

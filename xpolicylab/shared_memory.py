@@ -25,7 +25,7 @@ from __future__ import annotations
 import ipaddress
 import re
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
@@ -156,12 +156,14 @@ class IncomingSegments:
     def resolve(self, payload: dict[str, Any]) -> dict[str, Any]:
         """The payload with every array placed in the segment copied out of it (a payload without `shm` must
         hold no such places)."""
+        refs = list(_refs(payload))
         if "shm" not in payload:
-            return _replace(payload, _unplaced)
+            if refs:
+                raise ProtocolError(ErrorCode.INVALID_FRAME, "an array is placed in shared memory but the request "
+                                    "names no segment ('shm')", {"field": "shm"})
+            return payload
         payload = dict(payload)
         shm = self._attach(payload.pop("shm"))
-        refs: list[ShmRef] = []
-        _replace(payload, lambda ref: refs.append(ref) or ref)
         for ref in refs:
             if ref.offset + ref.nbytes > shm.size:
                 raise ProtocolError(ErrorCode.INVALID_FRAME, f"an array at bytes {ref.offset}-"
@@ -183,9 +185,16 @@ class IncomingSegments:
             self._shm = None
 
 
-def _unplaced(ref: ShmRef) -> np.ndarray:
-    raise ProtocolError(ErrorCode.INVALID_FRAME, "an array is placed in shared memory but the request names no "
-                        "segment ('shm')", {"field": "shm"})
+def _refs(obj: Any) -> Iterator[ShmRef]:
+    """Every array place in a decoded payload."""
+    if isinstance(obj, ShmRef):
+        yield obj
+    elif isinstance(obj, dict):
+        for value in obj.values():
+            yield from _refs(value)
+    elif isinstance(obj, list):
+        for value in obj:
+            yield from _refs(value)
 
 
 class _Copies:
