@@ -69,7 +69,7 @@ def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: bool = Tr
         {"observations": obs_list, "env_ids": env_ids}, codec.Dialect(protocol)))
     with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8,
                       shared_memory=shared_memory) as client:
-        shared = client._client.shares_memory
+        shared = client.shares_memory
         for _ in range(cfg.warmup):
             client.infer_batch(obs_list, env_ids)
         batch = LatencyStats()

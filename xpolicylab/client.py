@@ -460,6 +460,10 @@ class PolicyClient:
     def batches(self) -> bool:
         return self._client.batches
 
+    @property
+    def shares_memory(self) -> bool:
+        return self._client.shares_memory
+
     def connect(self) -> PolicyMetadata:
         return self._run(self._client.connect())
 

@@ -57,7 +57,7 @@ def test_the_model_gets_the_arrays_sent_and_may_keep_them():
     model = Keeper()
     first, second = _batch(4, 160), _batch(4, 160, seed=10)
     with serving(model) as srv, PolicyClient(srv.url) as client:
-        assert client.server_info["capabilities"]["shared_memory"] is True and client._client.shares_memory
+        assert client.server_info["capabilities"]["shared_memory"] is True and client.shares_memory
         client.infer_batch(first, list(range(4)))
         name = client._client._segment.name
         client.infer_batch(second, list(range(4)))
@@ -86,7 +86,7 @@ def test_without_shared_memory_the_bytes_travel_in_the_message():
     sent = _batch(3, 160)
     with serving(model) as srv, PolicyClient(srv.url, shared_memory=False) as client:
         client.infer_batch(sent, [0, 1, 2])
-        assert not client._client.shares_memory and client._client._segment is None
+        assert not client.shares_memory and client._client._segment is None
     _same(sent, model.batches[0])
 
 
