@@ -8,9 +8,10 @@
 The decoder accepts both spellings (keys as bin or str) whatever the dialect, so a peer that mixes them still
 interoperates. A third, ``shm: [offset, nbytes]`` where ``data`` would be, is the same-host extension
 (``shared_memory``): it decodes to a ``ShmRef`` that only a server which accepted the client's segment resolves.
-Decoded arrays are read-only views, as with both reference packages: copy one before modifying it in place. It is strict about everything that could hurt the receiver: object, structured and string
-dtypes are refused (msgpack-numpy would unpickle object arrays), the data length must match the shape, ext
-types and deep nesting are refused, and trailing bytes are an error.
+Decoded arrays are read-only views, as with both reference packages: copy one before modifying it in place. It is
+strict about everything that could hurt the receiver: object, structured and string dtypes are refused
+(msgpack-numpy would unpickle object arrays), the data length must match the shape, ext types and deep nesting are
+refused, and trailing bytes are an error.
 
 Why a hand-written codec rather than ``msgpack.packb(default=...)``: an observation batch is ~180 MB, and the
 stock path copies it several times into freshly mapped memory (page faults dominate on loopback). Encoding
