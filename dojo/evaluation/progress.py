@@ -5,11 +5,15 @@ The runtime loop owns one `Progress` and calls `episode_finished(row)` when an e
 Three modes, because people and scripts want different things:
 
 * `rich`  - a live bar and a per-dimension line on stderr, for a person at a terminal;
-* `jsonl` - one JSON object per finished episode plus a final summary, for scripts and CI logs;
+* `jsonl` - one JSON object per finished episode, a `progress` line at most every `HEARTBEAT_S` while
+  environments step (batched environments often finish their episodes together, minutes apart), and a final
+  summary, for scripts and CI logs;
 * `quiet` - nothing at all (the caller prints the final scores).
 
 The ETA is extrapolated from the episodes finished in *this* process only: after a resume, the episodes
 recorded before the crash count towards done/total and the running success rates, but not towards the speed.
+Two speeds: `interactions_per_s` since the run started (compilation and start-up included) and
+`recent_interactions_per_s` over the last `RATE_WINDOW_S` (what the run does now; the live bar shows it).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from typing import IO, Any
 
@@ -29,6 +34,10 @@ from dojo.compiler.taxonomy import builtin_taxonomy
 from dojo.evaluation.episode import EpisodeResult
 
 MODES = ("rich", "jsonl", "quiet")
+RATE_WINDOW_S = 30.0
+"""The recent speed counts the interactions of the last this many seconds."""
+HEARTBEAT_S = 10.0
+"""In `jsonl` mode, a `progress` line at most this often while environments step."""
 
 
 class Progress:
@@ -53,6 +62,8 @@ class Progress:
         self._start = clock()
         self._new_episodes = 0
         self._interactions = 0
+        self._samples: deque[tuple[float, int]] = deque()  # (time, interactions so far) within RATE_WINDOW_S
+        self._last_line = self._start
         self._closed = False
         self._dim_counts: dict[str, list[int]] = {}  # dimension -> [successes, episodes]
         self.done = 0
@@ -76,6 +87,7 @@ class Progress:
         self._count(row)
         self._new_episodes += 1
         if self.mode == "jsonl":
+            self._last_line = self._clock()
             self._emit({"event": "episode", **self.snapshot(), "episode": {
                 "task": row.task, "dimension": row.dimension, "setting": row.setting, "split": row.split,
                 "eval_seed": row.eval_seed, "index": row.episode, "success": row.success, "score": row.score,
@@ -89,6 +101,13 @@ class Progress:
         if n < 0:
             raise ValueError("interactions must be counted with n >= 0")
         self._interactions += n
+        now = self._clock()
+        self._samples.append((now, self._interactions))
+        while self._samples[0][0] < now - RATE_WINDOW_S:
+            self._samples.popleft()
+        if self.mode == "jsonl" and now - self._last_line >= HEARTBEAT_S:
+            self._last_line = now
+            self._emit({"event": "progress", **self.snapshot()})
         self._refresh()
 
     def close(self) -> None:
@@ -128,11 +147,21 @@ class Progress:
             "interactions": self._interactions,
             "interactions_per_s": round(self._interactions / elapsed, 2) if elapsed > 0 and self._interactions
             else None,  # a resumed run with nothing left to step has no rate (not a rate of 0)
+            "recent_interactions_per_s": self._recent_rate(),
             "success_by_dimension": {
                 d: {"successes": s, "episodes": n, "success_pct": round(100.0 * s / n, 2)}
                 for d, (s, n) in ((d, self._dim_counts[d]) for d in _in_taxonomy_order(self._dim_counts))
             },
         }
+
+    def _recent_rate(self) -> float | None:
+        """Interactions per second since the oldest step counted in the window, up to now (a stalled run's rate
+        falls); None before two steps were counted in it."""
+        now = self._clock()
+        recent = [s for s in self._samples if s[0] >= now - RATE_WINDOW_S]
+        if len(recent) < 2 or now <= recent[0][0]:
+            return None
+        return round((recent[-1][1] - recent[0][1]) / (now - recent[0][0]), 2)
 
     def _count(self, row: EpisodeResult) -> None:
         self.done += 1
@@ -163,7 +192,8 @@ class Progress:
             rate = f"resumed: {self._resumed} already recorded" + (f", {left} to run" if left else ", nothing to run")
         else:
             eta = "ETA --" if snap["eta_s"] is None else f"ETA {_duration(snap['eta_s'])}"
-            ips = "--" if not self._interactions else f"{snap['interactions_per_s']:.1f}"
+            speed = snap["recent_interactions_per_s"] or snap["interactions_per_s"]
+            ips = "--" if not speed else f"{speed:.1f}"
             rate = f"{eta}  {ips} interactions/s"
         self._bar.update(self._bar_task, completed=self.done, rate=rate)
         self._live.update(self._renderable())

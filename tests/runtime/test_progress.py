@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from dojo.evaluation.progress import Progress
+from dojo.evaluation.progress import HEARTBEAT_S, RATE_WINDOW_S, Progress
 
 
 class FakeClock:
@@ -30,8 +30,8 @@ def test_jsonl_lines_and_summary(make_row):
     progress.close()
     progress.close()  # a second close writes nothing more
     lines = [json.loads(line) for line in out.getvalue().splitlines()]
-    assert [line["event"] for line in lines] == ["episode", "episode", "summary"]
-    first, second, summary = lines
+    assert [line["event"] for line in lines] == ["progress", "episode", "progress", "episode", "summary"]
+    first, second, summary = [line for line in lines if line["event"] != "progress"]
     assert first["done"] == 1 and first["total"] == 4
     assert first["eta_s"] == pytest.approx(30.0)  # 10 s per episode, 3 to go
     assert first["interactions_per_s"] == pytest.approx(25.0)
@@ -39,6 +39,35 @@ def test_jsonl_lines_and_summary(make_row):
     assert second["success_by_dimension"] == {"memory": {"successes": 1, "episodes": 2, "success_pct": 50.0}}
     assert second["eta_s"] == pytest.approx(20.0)
     assert summary["done"] == 2 and summary["interactions"] == 500
+
+
+def test_the_recent_speed_leaves_start_up_out_and_falls_when_the_run_stalls():
+    clock, out = FakeClock(), io.StringIO()
+    progress = Progress(4, mode="jsonl", stream=out, clock=clock)
+    clock.now += 300  # compiling
+    progress.interactions(100)
+    assert progress.snapshot()["recent_interactions_per_s"] is None  # one step: no speed yet
+    for _ in range(5):
+        clock.now += 2
+        progress.interactions(100)
+    snap = progress.snapshot()
+    assert snap["recent_interactions_per_s"] == pytest.approx(50.0)  # 500 in the 10 s after the first step
+    assert snap["interactions_per_s"] == pytest.approx(600 / 310, abs=0.01)  # start-up included
+    clock.now += 10  # nothing stepped since: the recent speed counts the wait
+    assert progress.snapshot()["recent_interactions_per_s"] == pytest.approx(25.0)
+    clock.now += RATE_WINDOW_S
+    assert progress.snapshot()["recent_interactions_per_s"] is None
+
+
+def test_jsonl_says_how_a_run_goes_while_no_episode_ends():
+    clock, out = FakeClock(), io.StringIO()
+    progress = Progress(8, mode="jsonl", stream=out, clock=clock)
+    for _ in range(30):  # 30 s of steps, every batch of environments mid-episode
+        clock.now += 1
+        progress.interactions(64)
+    lines = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert [line["event"] for line in lines] == ["progress"] * int(30 // HEARTBEAT_S)
+    assert lines[-1]["interactions"] == 64 * 30 and lines[-1]["recent_interactions_per_s"] == pytest.approx(64.0)
 
 
 def test_resumed_episodes_count_towards_done_but_not_speed(make_row):
