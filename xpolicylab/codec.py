@@ -24,6 +24,8 @@ wire are exactly what ``msgpack`` would write.
 from __future__ import annotations
 
 import enum
+import functools
+import math
 import struct
 import sys
 import threading
@@ -287,6 +289,13 @@ def _dtype(spec: Any) -> np.dtype:
         spec = spec.decode("ascii", "replace")
     if not isinstance(spec, str):
         raise _invalid(f"array dtype must be a string, got {type(spec).__name__}")
+    return _checked_dtype(spec)
+
+
+@functools.lru_cache(maxsize=64)
+def _checked_dtype(spec: str) -> np.dtype:
+    """A dtype named on the wire, parsed once per name (a batch of observations names the same few thousands of
+    times; a bad name raises, and errors are not cached)."""
     try:
         dtype = np.dtype(spec)
     except (TypeError, ValueError):
@@ -307,7 +316,7 @@ def _shape(spec: Any) -> tuple[int, ...]:
 def _array(data: Any, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _invalid("array data must be binary")
-    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    expected = math.prod(shape) * dtype.itemsize
     if len(data) != expected:
         raise _invalid(f"array data has {len(data)} bytes, shape {list(shape)} of {dtype.str} needs {expected}")
     arr = np.frombuffer(data, dtype=dtype).reshape(shape)
@@ -319,7 +328,7 @@ def _shm_ref(place: Any, dtype: np.dtype, shape: tuple[int, ...]) -> ShmRef:
     if (not isinstance(place, list) or len(place) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in place)):
         raise _invalid("an array's 'shm' place must be [offset, nbytes], two non-negative integers")
-    expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    expected = math.prod(shape) * dtype.itemsize
     if place[1] != expected:
         raise _invalid(f"array in shared memory has {place[1]} bytes, shape {list(shape)} of {dtype.str} needs "
                        f"{expected}")

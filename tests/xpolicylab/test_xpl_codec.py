@@ -102,6 +102,7 @@ REFUSED = {
     "length mismatch": _nd({b"data": b"\x00" * 7}),
     "negative shape": _nd({b"shape": [-2]}),
     "too many dims": _nd({b"shape": [1] * 40, b"data": b"\x00" * 4}),
+    "shape whose size wraps in 64 bits": _nd({b"shape": [1 << 32, 1 << 32], b"data": b""}),
     "openpi object dtype": openpi_msgpack.packb({"x": {b"__ndarray__": True, b"data": b"", b"dtype": "|O",
                                                       b"shape": [0]}}),
     "truncated": msgpack.packb({"x": "hello"})[:-2],
