@@ -16,8 +16,9 @@ How (the native dialect only; an extension that peers without it never see):
   place against the segment's size and the array's dtype and shape, and copies the arrays out before the model
   sees them, so a model may keep what it is given. The client sends one such request at a time and reuses the
   segment only after its reply.
-- Anything the client cannot do (no room in /dev/shm, a server without the capability, a remote server) falls
-  back to sending the bytes, as before.
+- Anything the client cannot do (too little room in /dev/shm, checked before a segment is made since writing past
+  it would kill the process; a server without the capability; a remote server) falls back to sending the bytes,
+  as before.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import ipaddress
 import re
 import secrets
+import shutil
 from collections.abc import Callable, Iterator
 from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
@@ -38,6 +40,8 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 
 NAME = re.compile(r"^xpl_[0-9a-f]{32}$")
 """The only segment names a server attaches to: ours, never another program's."""
+SHM_DIR = "/dev/shm"
+"""Where Linux keeps POSIX shared memory (a tmpfs; its size is the room for segments)."""
 ALIGN = 64
 """Arrays start at multiples of this many bytes in the segment (cache lines; numpy views stay aligned)."""
 _CREATED_HERE: set[str] = set()
@@ -59,6 +63,14 @@ def is_loopback_host(host: str | None) -> bool:
 
 def is_loopback_url(url: str) -> bool:
     return is_loopback_host(urlsplit(url).hostname)
+
+
+def shared_memory_free() -> int:
+    """Bytes free for new segments (0 where POSIX shared memory is not the `SHM_DIR` file system)."""
+    try:
+        return shutil.disk_usage(SHM_DIR).free
+    except OSError:
+        return 0
 
 
 def _aligned(n: int) -> int:
@@ -93,7 +105,12 @@ class OutgoingSegment:
         OSError when the machine has no room for it."""
         if self._shm is None or self._shm.size < nbytes:
             self.close()
-            self._shm = SharedMemory(f"xpl_{secrets.token_hex(16)}", create=True, size=max(nbytes, 1 << 20))
+            size = max(nbytes, 1 << 20)
+            free = shared_memory_free()
+            if free < size:  # a segment is created sparse: writing past the room left would kill us (SIGBUS)
+                raise OSError(f"{SHM_DIR} has {free} bytes free, a request needs {size} (containers often give it "
+                              "64 MB: docker run --shm-size)")
+            self._shm = SharedMemory(f"xpl_{secrets.token_hex(16)}", create=True, size=size)
             _CREATED_HERE.add(self._shm.name)
         self.rewind()
 

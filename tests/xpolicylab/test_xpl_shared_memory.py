@@ -152,3 +152,18 @@ def test_an_array_place_is_checked_like_array_data():
             codec.decode(wire(bad))
     with pytest.raises(ProtocolError):
         codec.decode(wire([0, 16], dtype="|O"))
+
+
+def test_too_little_room_for_a_segment_sends_the_bytes_instead(monkeypatch, caplog):
+    """A container's /dev/shm is often 64 MB, and a segment is made sparse: writing past the room left would kill
+    the client (SIGBUS), so the room is checked first and the arrays go in the message."""
+    from xpolicylab import shared_memory
+
+    monkeypatch.setattr(shared_memory, "shared_memory_free", lambda: 64 << 10)
+    model, sent = Keeper(), _batch(2, 160)
+    with serving(model) as srv, PolicyClient(srv.url) as client:
+        assert client.shares_memory
+        client.infer_batch(sent, [0, 1])
+        assert not client.shares_memory and client._client._segment is None
+    _same(sent, model.batches[0])
+    assert "--shm-size" in caplog.text
