@@ -35,7 +35,7 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Observation, PolicyMetadata
 from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, encode_frame, parse_frame,
                                  readable_ids)
-from xpolicylab.shared_memory import OutgoingSegment, is_loopback_url, shared_bytes
+from xpolicylab.shared_memory import UNREADABLE, OutgoingSegment, is_loopback_url, shared_bytes
 from xpolicylab.stats import LatencyStats
 
 logger = logging.getLogger(__name__)
@@ -166,9 +166,7 @@ class AsyncPolicyClient:
             self._reader.cancel()
             self._reader = None
         self._fail_pending(ConnectionError("client closed"))
-        if self._segment is not None:
-            self._segment.close()
-            self._segment = None
+        self._drop_segment()
 
     async def _reconnect(self) -> None:
         """Open a fresh connection unless a concurrent request already did."""
@@ -271,8 +269,26 @@ class AsyncPolicyClient:
                 self._shared_wanted = False
                 return await self._request(MessageType.INFER, payload, step=step)
             self._segment = segment
-            return await self._request(MessageType.INFER, {**payload, "shm": segment.name}, step=step,
-                                       shared=segment)
+            try:
+                return await self._request(MessageType.INFER, {**payload, "shm": segment.name}, step=step,
+                                           shared=segment)
+            except ProtocolError as exc:
+                if exc.details.get("field") != "shm" or exc.details.get("reason") != UNREADABLE:
+                    if exc.code is ErrorCode.TIMEOUT:  # the server may still read it: the next request gets anew
+                        self._drop_segment()
+                    raise
+                # The server cannot read our segment (another /dev/shm: a container, a tunnel, another user):
+                # the bytes go in the message, now and later.
+                logger.warning("the server cannot read shared memory (%s); sending arrays over the connection",
+                               exc.message)
+                self._shared_wanted = False
+                self._drop_segment()
+            return await self._request(MessageType.INFER, payload, step=step)
+
+    def _drop_segment(self) -> None:
+        if self._segment is not None:
+            self._segment.close()
+            self._segment = None
 
     async def _request(self, kind: MessageType, payload: dict[str, Any], *, step: int = 0,
                        action_case_id: str | None = None, retry: bool = True,

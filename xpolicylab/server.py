@@ -260,6 +260,9 @@ class PolicyServer:
             return frame.reply(MessageType.HELLO_ACK, payload)
         if kind is MessageType.HEARTBEAT:
             return frame.reply(MessageType.HEARTBEAT_ACK, {"ok": True, "server_time": time.time()})
+        if kind is MessageType.INFER and "shm" in frame.payload:
+            async with segments.one_at_a_time:
+                return frame.reply(MessageType.INFER_RESULT, await self._infer(segments.resolve(frame.payload)))
         if kind is MessageType.INFER:
             return frame.reply(MessageType.INFER_RESULT, await self._infer(segments.resolve(frame.payload)))
         if kind is MessageType.RESET:

@@ -8,27 +8,30 @@ copies each image once into a segment and the server once out of it.
 
 How (the native dialect only; an extension that peers without it never see):
 - The server's `hello_ack` lists `capabilities.shared_memory: true` when the peer's address is a loopback one.
-- The client then keeps one segment (`multiprocessing.shared_memory`, named `xpl_` + 32 hex digits), sized to
-  the largest request so far. A request whose large arrays (`codec.LARGE_BIN` and up) fit names the segment in
-  its payload (`shm`) and carries, instead of each large array's bytes, its place in the segment: the array map
-  holds `shm: [offset, nbytes]` where `data` would be.
-- The server attaches to the segment by that name (same-host peers only, names of that form only), checks every
-  place against the segment's size and the array's dtype and shape, and copies the arrays out before the model
-  sees them, so a model may keep what it is given. The client sends one such request at a time and reuses the
-  segment only after its reply.
-- Anything the client cannot do (too little room in /dev/shm, checked before a segment is made since writing past
-  it would kill the process; a server without the capability; a remote server) falls back to sending the bytes,
-  as before.
+- The client then keeps one segment (`multiprocessing.shared_memory`, named `xpl_` + 32 hex digits, its room in
+  /dev/shm reserved with `posix_fallocate`), sized to the largest request so far. A request whose large arrays
+  (`codec.LARGE_BIN` and up) fit names the segment in its payload (`shm`) and carries, instead of each large
+  array's bytes, its place in the segment: the array map holds `shm: [offset, nbytes]` where `data` would be.
+- The server opens the segment by that name (same-host peers only, names of that form only) and reads each array
+  with `preadv` into its own buffer before the model sees them, so a model may keep what it is given. It never
+  maps the segment: a client that shrinks it gets a short read and an error reply, where a mapping would kill the
+  server (SIGBUS). One such request per connection at a time, and no more than the server's `max_frame_mb`.
+- The client sends one such request at a time and writes the segment again only after the reply; after a timeout
+  (the server may still be reading) the next request gets a new segment.
+- Anything the client cannot do falls back to sending the bytes, as before: too little room in /dev/shm, a
+  server that cannot open the segment (both on loopback but not one /dev/shm: a container, a tunnel, another
+  user), a server without the capability, a remote server.
 """
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
+import os
 import re
 import secrets
 import shutil
 from collections.abc import Callable, Iterator
-from multiprocessing import resource_tracker
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any
 from urllib.parse import urlsplit
@@ -40,13 +43,13 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 
 NAME = re.compile(r"^xpl_[0-9a-f]{32}$")
 """The only segment names a server attaches to: ours, never another program's."""
+UNREADABLE = "unreadable"
+"""The `reason` of the error a server sends when it cannot open the segment named (it sees another /dev/shm): the
+client then sends the bytes in the message instead."""
 SHM_DIR = "/dev/shm"
 """Where Linux keeps POSIX shared memory (a tmpfs; its size is the room for segments)."""
 ALIGN = 64
 """Arrays start at multiples of this many bytes in the segment (cache lines; numpy views stay aligned)."""
-_CREATED_HERE: set[str] = set()
-"""Segments this process created (a client), so that a server in the same process (tests) leaves their
-registration with Python's resource tracker alone."""
 
 
 def is_loopback_host(host: str | None) -> bool:
@@ -56,9 +59,11 @@ def is_loopback_host(host: str | None) -> bool:
     if host.lower() == "localhost":
         return True
     try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
+        address = ipaddress.ip_address(host.strip("[]"))
     except ValueError:
         return False
+    mapped = getattr(address, "ipv4_mapped", None)  # ::ffff:127.0.0.1, a server bound to :: sees IPv4 peers so
+    return (mapped or address).is_loopback
 
 
 def is_loopback_url(url: str) -> bool:
@@ -110,8 +115,18 @@ class OutgoingSegment:
             if free < size:  # a segment is created sparse: writing past the room left would kill us (SIGBUS)
                 raise OSError(f"{SHM_DIR} has {free} bytes free, a request needs {size} (containers often give it "
                               "64 MB: docker run --shm-size)")
-            self._shm = SharedMemory(f"xpl_{secrets.token_hex(16)}", create=True, size=size)
-            _CREATED_HERE.add(self._shm.name)
+            shm = SharedMemory(f"xpl_{secrets.token_hex(16)}", create=True, size=size)
+            try:  # reserve its room now: another process may take what the check above saw free
+                fd = os.open(os.path.join(SHM_DIR, shm.name), os.O_RDWR | os.O_NOFOLLOW)
+                try:
+                    os.posix_fallocate(fd, 0, size)
+                finally:
+                    os.close(fd)
+            except OSError:
+                shm.close()
+                shm.unlink()
+                raise
+            self._shm = shm
         self.rewind()
 
     def rewind(self) -> None:
@@ -136,39 +151,41 @@ class OutgoingSegment:
                 self._shm.unlink()
             except FileNotFoundError:
                 pass
-            _CREATED_HERE.discard(self._shm.name)
             self._shm = None
 
 
 class IncomingSegments:
-    """A server connection's view of its client's segment; `allowed` only for a same-host peer."""
+    """A server connection's view of its client's segment; `allowed` only for a same-host peer.
+
+    The segment is read with `preadv` from a file descriptor, never mapped: a client that shrinks its segment
+    then gets a short read (an error reply), where reading a mapping would kill the server (SIGBUS). Requests
+    through the segment are served one at a time per connection (`one_at_a_time`): a few bytes of message may
+    name hundreds of MB of arrays, and only one such copy is held at once."""
 
     def __init__(self, allowed: bool, max_bytes: int) -> None:
         """`max_bytes`: the most one request may bring through the segment, the server's limit on a message."""
         self.allowed = allowed
         self.max_bytes = max_bytes
-        self._shm: SharedMemory | None = None
+        self.one_at_a_time = asyncio.Lock()
+        self._fd: int | None = None
+        self._name: str | None = None
 
-    def _attach(self, name: Any) -> SharedMemory:
+    def _open(self, name: Any) -> int:
         if not self.allowed:
             raise ProtocolError(ErrorCode.INVALID_FRAME, "shared memory is offered to clients on this machine only",
                                 {"field": "shm"})
         if not isinstance(name, str) or not NAME.match(name):
             raise ProtocolError(ErrorCode.INVALID_FRAME, f"'shm' must name an xpl_ segment, got {name!r}",
                                 {"field": "shm"})
-        if self._shm is None or self._shm.name != name:
+        if self._fd is None or self._name != name:
             self.close()
             try:
-                shm = SharedMemory(name)
-            except (FileNotFoundError, OSError) as exc:
+                self._fd = os.open(os.path.join(SHM_DIR, name), os.O_RDONLY | os.O_NOFOLLOW)
+            except OSError as exc:
                 raise ProtocolError(ErrorCode.INVALID_FRAME, f"cannot open shared memory {name}: {exc}",
-                                    {"field": "shm"}) from None
-            # Python < 3.13 registers an attached segment too, and would remove it when this process exits:
-            # it is the client's to remove.
-            if name not in _CREATED_HERE:
-                resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
-            self._shm = shm
-        return self._shm
+                                    {"field": "shm", "reason": UNREADABLE}) from None
+            self._name = name
+        return self._fd
 
     def resolve(self, payload: dict[str, Any]) -> dict[str, Any]:
         """The payload with every array placed in the segment copied out of it (a payload without `shm` must
@@ -180,26 +197,17 @@ class IncomingSegments:
                                     "names no segment ('shm')", {"field": "shm"})
             return payload
         payload = dict(payload)
-        shm = self._attach(payload.pop("shm"))
-        for ref in refs:
-            if ref.offset + ref.nbytes > shm.size:
-                raise ProtocolError(ErrorCode.INVALID_FRAME, f"an array at bytes {ref.offset}-"
-                                    f"{ref.offset + ref.nbytes} lies outside the {shm.size}-byte segment",
-                                    {"field": "shm"})
+        fd = self._open(payload.pop("shm"))
         total = sum(_aligned(r.nbytes) for r in refs)
         if total > self.max_bytes:
             raise ProtocolError(ErrorCode.INVALID_FRAME, f"the request places {total} bytes in shared memory, more "
                                 f"than this server accepts in a message ({self.max_bytes})", {"field": "shm"})
-        copies = _Copies(shm, total)
-        return _replace(payload, copies.take)
+        return _replace(payload, _Copies(fd, total).take)
 
     def close(self) -> None:
-        if self._shm is not None:
-            try:
-                self._shm.close()
-            except BufferError:  # a view of it is still alive (an error's traceback): unmapped when collected
-                pass
-            self._shm = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = self._name = None
 
 
 def _refs(obj: Any) -> Iterator[ShmRef]:
@@ -215,17 +223,25 @@ def _refs(obj: Any) -> Iterator[ShmRef]:
 
 
 class _Copies:
-    """The arrays of one request copied out of the segment into one recycled buffer, as read-only views of it
-    (like the arrays the codec decodes from a message)."""
+    """The arrays of one request read out of the segment into one recycled buffer, as read-only views of it (like
+    the arrays the codec decodes from a message)."""
 
-    def __init__(self, shm: SharedMemory, total: int) -> None:
-        self.source = np.frombuffer(shm.buf, np.uint8)
+    def __init__(self, fd: int, total: int) -> None:
+        self.fd = fd
         self.target = recycled_buffer(total) if total else np.empty(0, np.uint8)
         self.filled = 0
 
     def take(self, ref: ShmRef) -> np.ndarray:
         start, n = self.filled, ref.nbytes
-        self.target[start:start + n] = self.source[ref.offset:ref.offset + n]
+        view, got = memoryview(self.target[start:start + n]), 0
+        while got < n:  # a read returns at most about 2 GB
+            step = os.preadv(self.fd, [view[got:]], ref.offset + got)
+            if step <= 0:
+                break
+            got += step
+        if got != n:
+            raise ProtocolError(ErrorCode.INVALID_FRAME, f"an array at bytes {ref.offset}-{ref.offset + n} lies "
+                                f"outside the segment ({got} of its {n} bytes there)", {"field": "shm"})
         self.filled = _aligned(start + n)
         out = self.target[start:start + n].view(ref.dtype).reshape(ref.shape)
         out.flags.writeable = False

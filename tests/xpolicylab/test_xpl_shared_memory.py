@@ -48,8 +48,8 @@ def _same(sent: list[dict], got: list[dict]) -> None:
 
 
 def test_loopback_hosts():
-    assert all(is_loopback_host(h) for h in ("127.0.0.1", "127.3.2.1", "::1", "[::1]", "localhost"))
-    assert not any(is_loopback_host(h) for h in ("10.0.0.2", "gpu1", "", None, "0.0.0.0"))
+    assert all(is_loopback_host(h) for h in ("127.0.0.1", "127.3.2.1", "::1", "[::1]", "localhost", "::ffff:127.0.0.1"))
+    assert not any(is_loopback_host(h) for h in ("10.0.0.2", "::ffff:10.0.0.2", "gpu1", "", None, "0.0.0.0"))
     assert is_loopback_url("ws://127.0.0.1:19000") and not is_loopback_url("ws://gpu1:19000")
 
 
@@ -167,3 +167,59 @@ def test_too_little_room_for_a_segment_sends_the_bytes_instead(monkeypatch, capl
         assert not client.shares_memory and client._client._segment is None
     _same(sent, model.batches[0])
     assert "--shm-size" in caplog.text
+
+
+def test_a_server_that_cannot_read_the_segment_gets_the_bytes_instead(monkeypatch):
+    """Both ends on loopback but not one /dev/shm (a container without --ipc=host, an ssh tunnel, another user):
+    the server says it cannot open the segment, and the client sends the request again in the message."""
+    import os
+
+    from xpolicylab import shared_memory
+
+    made = shared_memory.OutgoingSegment.ready_for
+
+    def made_elsewhere(self, nbytes):  # the segment exists for the client only
+        made(self, nbytes)
+        os.unlink(os.path.join(shared_memory.SHM_DIR, self.name))
+
+    monkeypatch.setattr(shared_memory.OutgoingSegment, "ready_for", made_elsewhere)
+    model, sent = Keeper(), _batch(2, 160)
+    with serving(model) as srv, PolicyClient(srv.url) as client:
+        client.infer_batch(sent, [0, 1])
+        assert not client.shares_memory and client._client._segment is None
+    _same(sent, model.batches[0])
+
+
+def test_a_segment_shrunk_under_the_server_is_an_error_reply_not_a_crash():
+    """The server reads the segment from a file descriptor, not a mapping: bytes a client took away read short
+    (a mapping would have killed the server with SIGBUS, and this test process with it)."""
+    import os
+
+    from xpolicylab.shared_memory import SHM_DIR
+
+    obs = _batch(1, 160)[0]
+    with serving(Keeper()) as srv, PolicyClient(srv.url) as client:
+        client.infer(obs)  # the server has the segment open now
+        name = client._client._segment.name
+        os.truncate(os.path.join(SHM_DIR, name), 0)
+        with pytest.raises(ProtocolError, match="outside the segment"):
+            client._call(client._client._request, MessageType.INFER, {"observation": obs, "shm": name},
+                         shared=_Placer(0))
+        assert client.heartbeat() > 0  # the server and the connection are still there
+
+
+class Slow(Keeper):
+    def get_action_batch(self, env_ids):
+        import time
+
+        time.sleep(1.0)
+        return super().get_action_batch(env_ids)
+
+
+def test_after_a_timeout_the_next_request_gets_a_new_segment():
+    """The server may still read a request that timed out: the next one must not overwrite its arrays."""
+    sent = _batch(2, 160)
+    with serving(Slow()) as srv, PolicyClient(srv.url, recv_timeout_s=0.2) as client:
+        with pytest.raises(ProtocolError) as err:
+            client.infer_batch(sent, [0, 1])
+        assert err.value.code is ErrorCode.TIMEOUT and client._client._segment is None
