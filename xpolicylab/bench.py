@@ -61,15 +61,13 @@ def spawned_server(protocol: str, timeout_s: float = 60.0) -> Iterator[str]:
             proc.wait()
 
 
-def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: bool = True) -> dict[str, Any]:
+def _measure(url: str, protocol: str, cfg: BenchConfig) -> dict[str, Any]:
     emb = get_embodiment(cfg.embodiment)
     obs_list = synthetic_batch(emb, cfg.batch, cfg.cameras, cfg.width, cfg.height)
     env_ids = list(range(cfg.batch))
     request_bytes = sum(memoryview(c).nbytes for c in codec.encode_chunks(
         {"observations": obs_list, "env_ids": env_ids}, codec.Dialect(protocol)))
-    with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8,
-                      shared_memory=shared_memory) as client:
-        shared = client.shares_memory
+    with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8) as client:
         for _ in range(cfg.warmup):
             client.infer_batch(obs_list, env_ids)
         batch = LatencyStats()
@@ -92,7 +90,6 @@ def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: bool = Tr
         "single_rtt_ms_p50": round(single.percentile(50), 2),
         "single_rtt_ms_p99": round(single.percentile(99), 2),
         "request_mb": round(request_bytes / 1e6, 2),
-        "shared_memory": shared,
     }
 
 
@@ -103,23 +100,12 @@ def run_bench(cfg: BenchConfig) -> dict[str, Any]:
         "images": f"{len(cfg.cameras)}x{cfg.width}x{cfg.height}", "n": cfg.n, "single_n": cfg.single_n,
     }
     for protocol in cfg.protocols:
-        with _server(cfg, protocol) as url:
-            result[protocol] = _measure(url, protocol, cfg)
-            if protocol == "xpolicylab" and result[protocol]["shared_memory"]:  # the socket alone, same server
-                result["xpolicylab_socket"] = _measure(url, protocol, cfg, shared_memory=False)
-                result["shared_memory_over_socket"] = round(
-                    result[protocol]["mb_per_s"] / max(result["xpolicylab_socket"]["mb_per_s"], 1e-9), 2)
+        if cfg.url:
+            result[protocol] = _measure(cfg.url, protocol, cfg)
+        else:
+            with spawned_server(protocol) as url:
+                result[protocol] = _measure(url, protocol, cfg)
     return result
-
-
-@contextmanager
-def _server(cfg: BenchConfig, protocol: str) -> Iterator[str]:
-    """The server to measure: `cfg.url`, else a zero-policy server spawned for `protocol`."""
-    if cfg.url:
-        yield cfg.url
-    else:
-        with spawned_server(protocol) as url:
-            yield url
 
 
 def protocols_arg(values: Sequence[str]) -> tuple[str, ...]:

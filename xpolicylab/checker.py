@@ -200,7 +200,7 @@ def run_check(cfg: CheckConfig) -> CheckReport:
     audit = WireAudit() if cfg.protocol == "xpolicylab" else None
     client = PolicyClient(cfg.url, cfg.protocol, token=cfg.token, recv_timeout_s=cfg.timeout_s,
                           connect_timeout_s=cfg.timeout_s, max_connect_attempts=cfg.connect_attempts,
-                          observer=audit, shared_memory=False)  # the wire format every peer speaks
+                          observer=audit)
     try:
         ok, meta = _step(report, "connect", client.connect, record=False)
         if not ok:

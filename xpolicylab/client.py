@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import asyncio
-import logging
 import threading
 import time
 import uuid
@@ -35,10 +34,8 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Observation, PolicyMetadata
 from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, encode_frame, parse_frame,
                                  readable_ids)
-from xpolicylab.shared_memory import UNREADABLE, OutgoingSegment, is_loopback_url, shared_bytes
 from xpolicylab.stats import LatencyStats
 
-logger = logging.getLogger(__name__)
 T = TypeVar("T")
 #: Sees every binary message the server sends, with the request it answers (``None`` when none matched).
 ReplyObserver = Callable[[bytes, "Frame | None"], None]
@@ -65,10 +62,7 @@ class AsyncPolicyClient:
         backoff_max_s: float = 5.0,
         max_frame_mb: float = 512.0,
         observer: ReplyObserver | None = None,
-        shared_memory: bool = True,
     ) -> None:
-        """``shared_memory``: send large arrays through shared memory when the server is on this machine and
-        offers it (``xpolicylab.shared_memory``); else, or when that fails, in the message as always."""
         if protocol not in ("xpolicylab", "openpi"):
             raise ValueError(f"protocol must be 'xpolicylab' or 'openpi', got {protocol!r}")
         self.url = url
@@ -93,9 +87,6 @@ class AsyncPolicyClient:
         self._reconnecting = asyncio.Lock()
         self._case: tuple[str | None, dict[str, Any]] | None = None
         self._trial: dict[str, Any] = {}
-        self._shared_wanted = shared_memory and protocol == "xpolicylab" and is_loopback_url(url)
-        self._segment: OutgoingSegment | None = None
-        self._segment_lock = asyncio.Lock()
 
     async def __aenter__(self) -> AsyncPolicyClient:
         await self.connect()
@@ -166,7 +157,6 @@ class AsyncPolicyClient:
             self._reader.cancel()
             self._reader = None
         self._fail_pending(ConnectionError("client closed"))
-        self._drop_segment()
 
     async def _reconnect(self) -> None:
         """Open a fresh connection unless a concurrent request already did."""
@@ -249,50 +239,8 @@ class AsyncPolicyClient:
         return entry[0] if entry is not None else None
 
     # ----------------------------------------------------------------------------------------------- requests
-    @property
-    def shares_memory(self) -> bool:
-        """Whether large arrays go through shared memory (a same-host server that offers it)."""
-        return self._shared_wanted and (self.server_info.get("capabilities") or {}).get("shared_memory") is True
-
-    async def _infer_request(self, payload: dict[str, Any], step: int) -> Frame:
-        """An ``infer`` request, its large arrays through shared memory where it can (one such request at a time:
-        the segment is reused only once the server has answered)."""
-        need = shared_bytes(payload) if self.shares_memory else 0
-        if need == 0:
-            return await self._request(MessageType.INFER, payload, step=step)
-        async with self._segment_lock:
-            segment = self._segment or OutgoingSegment()
-            try:
-                segment.ready_for(need)
-            except OSError as exc:  # no room in /dev/shm: the bytes go in the message, now and later
-                logger.warning("shared memory unavailable (%s); sending arrays over the connection", exc)
-                self._shared_wanted = False
-                return await self._request(MessageType.INFER, payload, step=step)
-            self._segment = segment
-            try:
-                return await self._request(MessageType.INFER, {**payload, "shm": segment.name}, step=step,
-                                           shared=segment)
-            except ProtocolError as exc:
-                if exc.details.get("field") != "shm" or exc.details.get("reason") != UNREADABLE:
-                    if exc.code is ErrorCode.TIMEOUT:  # the server may still read it: the next request gets anew
-                        self._drop_segment()
-                    raise
-                # The server cannot read our segment (another /dev/shm: a container, a tunnel, another user):
-                # the bytes go in the message, now and later.
-                logger.warning("the server cannot read shared memory (%s); sending arrays over the connection",
-                               exc.message)
-                self._shared_wanted = False
-                self._drop_segment()
-            return await self._request(MessageType.INFER, payload, step=step)
-
-    def _drop_segment(self) -> None:
-        if self._segment is not None:
-            self._segment.close()
-            self._segment = None
-
     async def _request(self, kind: MessageType, payload: dict[str, Any], *, step: int = 0,
-                       action_case_id: str | None = None, retry: bool = True,
-                       shared: OutgoingSegment | None = None) -> Frame:
+                       action_case_id: str | None = None, retry: bool = True) -> Frame:
         for attempt in (0, 1):
             if self._ws is None:
                 await self._reconnect()
@@ -305,9 +253,7 @@ class AsyncPolicyClient:
             fut: asyncio.Future[Frame] = asyncio.get_running_loop().create_future()
             self._pending[frame.message_id] = (frame, fut)
             try:
-                if shared is not None:
-                    shared.rewind()  # a retry writes the arrays again from the segment's start
-                await transport.send_chunks(ws, encode_frame(frame, shared))
+                await transport.send_chunks(ws, encode_frame(frame))
                 reply = await asyncio.wait_for(fut, self.recv_timeout_s)
             except asyncio.TimeoutError:
                 self._pending.pop(frame.message_id, None)
@@ -384,7 +330,7 @@ class AsyncPolicyClient:
         """One observation in, the full reply payload out (``actions``, ``action_mode``, ...)."""
         if self.protocol == "openpi":
             return await self._timed(self._openpi_infer(obs))
-        return (await self._timed(self._infer_request({"observation": obs}, step))).payload
+        return (await self._timed(self._request(MessageType.INFER, {"observation": obs}, step=step))).payload
 
     async def infer(self, obs: Observation, step: int = 0) -> np.ndarray:
         """One observation in, one action chunk ``float32[K, D]`` out."""
@@ -401,7 +347,7 @@ class AsyncPolicyClient:
         if self.protocol == "openpi":
             reply = await self._timed(self._openpi_infer(request))
         else:
-            reply = (await self._timed(self._infer_request(request, step))).payload
+            reply = (await self._timed(self._request(MessageType.INFER, request, step=step))).payload
         return np.asarray(reply["actions"])
 
     @property
@@ -475,10 +421,6 @@ class PolicyClient:
     @property
     def batches(self) -> bool:
         return self._client.batches
-
-    @property
-    def shares_memory(self) -> bool:
-        return self._client.shares_memory
 
     def connect(self) -> PolicyMetadata:
         return self._run(self._client.connect())

@@ -6,12 +6,10 @@
   ``{b"__ndarray__": True, b"data": <bin>, b"dtype": dtype.str, b"shape": [...]}``.
 
 The decoder accepts both spellings (keys as bin or str) whatever the dialect, so a peer that mixes them still
-interoperates. A third, ``shm: [offset, nbytes]`` where ``data`` would be, is the same-host extension
-(``shared_memory``): it decodes to a ``ShmRef`` that only a server which accepted the client's segment resolves.
-Decoded arrays are read-only views, as with both reference packages: copy one before modifying it in place. It is
-strict about everything that could hurt the receiver: object, structured and string dtypes are refused
-(msgpack-numpy would unpickle object arrays), the data length must match the shape, ext types and deep nesting are
-refused, and trailing bytes are an error.
+interoperates. Decoded arrays are read-only views, as with both reference packages: copy one before
+modifying it in place. It is strict about everything that could hurt the receiver: object, structured and string
+dtypes are refused (msgpack-numpy would unpickle object arrays), the data length must match the shape, ext
+types and deep nesting are refused, and trailing bytes are an error.
 
 Why a hand-written codec rather than ``msgpack.packb(default=...)``: an observation batch is ~180 MB, and the
 stock path copies it several times into freshly mapped memory (page faults dominate on loopback). Encoding
@@ -30,8 +28,7 @@ import struct
 import sys
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -90,31 +87,11 @@ def _check_dtype(dtype: np.dtype) -> None:
         raise TypeError(f"arrays of dtype {dtype} cannot be sent; use bool, integer or float arrays")
 
 
-@dataclass(frozen=True)
-class ShmRef:
-    """An array a same-host client placed in shared memory (`shared_memory`): where it lies in the segment the
-    request names, and what it is. The decoder returns these for array maps holding `shm: [offset, nbytes]`
-    instead of `data`; only a server that accepted the segment turns them into arrays."""
-
-    offset: int
-    nbytes: int
-    dtype: np.dtype
-    shape: tuple[int, ...]
-
-
-class SharedWriter(Protocol):
-    """Where the encoder puts large arrays instead of the message (`shared_memory.OutgoingSegment`)."""
-
-    def put(self, arr: np.ndarray) -> tuple[int, int]: ...
-
-
 class _Encoder:
-    """Writes one object as a list of chunks; small items are coalesced, large array buffers are not copied (or,
-    with `shared`, are copied into shared memory and only their place is written)."""
+    """Writes one object as a list of chunks; small items are coalesced, large array buffers are not copied."""
 
-    def __init__(self, dialect: Dialect, shared: SharedWriter | None = None) -> None:
+    def __init__(self, dialect: Dialect) -> None:
         self.dialect = dialect
-        self.shared = shared
         self.chunks: list[bytes | memoryview] = []
         self.buf = bytearray()
 
@@ -142,12 +119,6 @@ class _Encoder:
             self.buf += b"\x84" + _packb(b"__ndarray__") + b"\xc3" + _packb(b"data")
             self._data(arr)
             self.buf += _packb(b"dtype") + _packb(arr.dtype.str) + _packb(b"shape") + _packb(shape)
-        elif self.shared is not None and arr.nbytes >= LARGE_BIN:
-            place = self.shared.put(np.ascontiguousarray(arr))
-            self.buf += (
-                b"\x85" + _packb(b"nd") + b"\xc3" + _packb(b"type") + _packb(arr.dtype.str)
-                + _packb(b"kind") + _packb(b"") + _packb(b"shape") + _packb(shape) + _packb(b"shm") + _packb(place)
-            )
         else:
             self.buf += (
                 b"\x85" + _packb(b"nd") + b"\xc3" + _packb(b"type") + _packb(arr.dtype.str)
@@ -188,14 +159,12 @@ class _Encoder:
             raise TypeError(f"cannot encode {type(obj).__name__} in a frame")
 
 
-def encode_chunks(obj: Any, dialect: Dialect = Dialect.XPOLICYLAB,
-                  shared: SharedWriter | None = None) -> list[bytes | memoryview]:
+def encode_chunks(obj: Any, dialect: Dialect = Dialect.XPOLICYLAB) -> list[bytes | memoryview]:
     """Encode ``obj`` as chunks whose concatenation is the MessagePack message; large arrays are not copied.
 
-    The arrays must not be modified until the chunks have been sent. With ``shared`` (native dialect), large arrays
-    go into shared memory and the message holds their places (``ShmRef``).
+    The arrays must not be modified until the chunks have been sent.
     """
-    enc = _Encoder(Dialect(dialect), shared)
+    enc = _Encoder(Dialect(dialect))
     enc.write(obj)
     return enc.finish()
 
@@ -324,26 +293,12 @@ def _array(data: Any, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
-def _shm_ref(place: Any, dtype: np.dtype, shape: tuple[int, ...]) -> ShmRef:
-    if (not isinstance(place, list) or len(place) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in place)):
-        raise _invalid("an array's 'shm' place must be [offset, nbytes], two non-negative integers")
-    expected = math.prod(shape) * dtype.itemsize
-    if place[1] != expected:
-        raise _invalid(f"array in shared memory has {place[1]} bytes, shape {list(shape)} of {dtype.str} needs "
-                       f"{expected}")
-    return ShmRef(place[0], place[1], dtype, shape)
-
-
 def _decode_map(obj: dict) -> Any:
     """Turn an array map of either dialect into a numpy value; leave other maps alone."""
     if _first(obj, _ND_KEYS) is True:
         kind = _first(obj, (b"kind", "kind"))
         if kind not in (None, b"", ""):
             raise _invalid(f"array kind {kind!r} is not allowed (object and structured arrays are refused)")
-        place = _first(obj, (b"shm", "shm"))
-        if place is not None and _first(obj, (b"data", "data")) is None:
-            return _shm_ref(place, _dtype(_first(obj, (b"type", "type"))), _shape(_first(obj, (b"shape", "shape"))))
         return _array(_first(obj, (b"data", "data")), _dtype(_first(obj, (b"type", "type"))),
                       _shape(_first(obj, (b"shape", "shape"))))
     if _first(obj, _ND_KEYS) is False:
@@ -428,12 +383,6 @@ class _BufferPool:
 
 
 _POOL = _BufferPool()
-
-
-def recycled_buffer(n: int) -> np.ndarray:
-    """A uint8 buffer of ``n`` bytes that nothing else uses, recycled once every view of it is gone (page faults
-    on fresh memory cost as much as the copy into it)."""
-    return _POOL.get(n)
 
 
 def _bin(r: _Reader, n: int) -> bytes | memoryview:

@@ -119,10 +119,9 @@ class Frame:
         return self.reply(MessageType.ERROR, exc.to_payload())
 
 
-def encode_frame(frame: Frame, shared: codec.SharedWriter | None = None) -> list[bytes | memoryview]:
-    """Encode a frame as zero-copy chunks (see ``codec.encode_chunks``; ``shared``: large arrays into shared
-    memory, ``shared_memory``)."""
-    return codec.encode_chunks(frame.to_wire(), codec.Dialect.XPOLICYLAB, shared)
+def encode_frame(frame: Frame) -> list[bytes | memoryview]:
+    """Encode a frame as zero-copy chunks (see ``codec.encode_chunks``)."""
+    return codec.encode_chunks(frame.to_wire(), codec.Dialect.XPOLICYLAB)
 
 
 def _optional(wire: dict, key: str, kinds: tuple[type, ...]) -> Any:

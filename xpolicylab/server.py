@@ -41,7 +41,6 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, as_model
 from xpolicylab.protocol import (PROTOCOL_VERSION, REQUESTS, SERVER_NAME, UPSTREAM_FORMAT, Frame, MessageType,
                                  decode_frame_or_error, encode_frame, error_for_unreadable)
-from xpolicylab.shared_memory import IncomingSegments, is_loopback_host
 
 logger = logging.getLogger(__name__)
 
@@ -252,19 +251,14 @@ class PolicyServer:
             raise ProtocolError(ErrorCode.RESET_FAILED, f"reset failed: {type(exc).__name__}: {exc}") from exc
         return {"ok": True}
 
-    async def _dispatch(self, frame: Frame, segments: IncomingSegments) -> Frame:
+    async def _dispatch(self, frame: Frame) -> Frame:
         kind = frame.message_type
         if kind is MessageType.HELLO:
-            payload = self.hello_payload()
-            payload["capabilities"]["shared_memory"] = segments.allowed
-            return frame.reply(MessageType.HELLO_ACK, payload)
+            return frame.reply(MessageType.HELLO_ACK, self.hello_payload())
         if kind is MessageType.HEARTBEAT:
             return frame.reply(MessageType.HEARTBEAT_ACK, {"ok": True, "server_time": time.time()})
-        if kind is MessageType.INFER and "shm" in frame.payload:
-            async with segments.one_at_a_time:
-                return frame.reply(MessageType.INFER_RESULT, await self._infer(segments.resolve(frame.payload)))
         if kind is MessageType.INFER:
-            return frame.reply(MessageType.INFER_RESULT, await self._infer(segments.resolve(frame.payload)))
+            return frame.reply(MessageType.INFER_RESULT, await self._infer(frame.payload))
         if kind is MessageType.RESET:
             return frame.reply(MessageType.RESET_RESULT, await self._reset(frame))
         if kind is MessageType.PREPARE_CASE:
@@ -279,9 +273,9 @@ class PolicyServer:
         raise ProtocolError(ErrorCode.UNKNOWN_MESSAGE_TYPE, f"{kind.value!r} is not a request a server answers",
                             {"message_type": kind.value, "requests": sorted(t.value for t in REQUESTS)})
 
-    async def _respond(self, ws: ServerConnection, frame: Frame, segments: IncomingSegments) -> None:
+    async def _respond(self, ws: ServerConnection, frame: Frame) -> None:
         try:
-            reply = await self._dispatch(frame, segments)
+            reply = await self._dispatch(frame)
         except ProtocolError as exc:
             reply = frame.error(exc)
         except Exception as exc:  # a bug in the server itself must not take the connection down silently
@@ -297,8 +291,6 @@ class PolicyServer:
 
     async def _serve_native(self, ws: ServerConnection) -> None:
         tasks: set[asyncio.Task[None]] = set()
-        peer = ws.remote_address[0] if ws.remote_address else None
-        segments = IncomingSegments(is_loopback_host(peer), int(self.config.max_frame_mb * (1 << 20)))
         try:
             while True:
                 is_text, parts = await transport.recv_message(ws)
@@ -313,13 +305,12 @@ class PolicyServer:
                 if frame.message_type is MessageType.CLOSE:
                     await ws.close(reason="client sent close")
                     return
-                task = asyncio.create_task(self._respond(ws, frame, segments))
+                task = asyncio.create_task(self._respond(ws, frame))
                 tasks.add(task)
                 task.add_done_callback(tasks.discard)
         finally:
             if tasks:
                 await asyncio.gather(*tasks, return_exceptions=True)
-            segments.close()
 
     async def _serve_openpi(self, ws: ServerConnection) -> None:
         await ws.send(codec.encode(self._metadata.to_dict(), codec.Dialect.OPENPI))
@@ -333,7 +324,7 @@ class PolicyServer:
                     raise ProtocolError(ErrorCode.INVALID_FRAME, "an observation must be a map")
                 payload = obs if "observations" in obs else {"observation": obs}
                 start = time.perf_counter()
-                reply = await self._infer(IncomingSegments(False, 0).resolve(payload))  # openpi: no shared memory
+                reply = await self._infer(payload)
                 reply["server_timing"] = {"infer_ms": (time.perf_counter() - start) * 1e3}
                 await transport.send_chunks(ws, codec.encode_chunks(reply, codec.Dialect.OPENPI))
             except (ProtocolError, TypeError, ValueError) as exc:

@@ -75,15 +75,6 @@ def _render() -> str:
     return f"ok (MUJOCO_GL={os.environ.get('MUJOCO_GL')})"
 
 
-def _shared_memory() -> str:
-    from xpolicylab.shared_memory import SHM_DIR, shared_memory_free
-
-    free = shared_memory_free()
-    if not free:
-        return f"none ({SHM_DIR} missing or full): policies on this machine are sent images over the socket"
-    return f"{_size(free)} free in {SHM_DIR} (images to policies on this machine go through it)"
-
-
 def _folder(path: Path) -> dict[str, Any]:
     """A folder's absolute path, whether it exists, and the bytes of the files below it."""
     size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
@@ -102,7 +93,7 @@ def facts() -> dict[str, Any]:
         "versions": {"python": platform.python_version(), **{p: _version(p) for p in PACKAGES}},
         "system": {"platform": platform.platform(), "machine": platform.machine(), "cpu_cores": os.cpu_count()},
         "devices": {"gpus": _probe(_gpus), "jax_backend": _probe(_jax), "mujoco_warp": _probe(_warp),
-                    "rendering": _probe(_render), "shared_memory": _probe(_shared_memory)},
+                    "rendering": _probe(_render)},
         "folders": {"results_root": {**_folder(root), "runs": len(list(root.rglob(STORE_FILENAME))) if root.is_dir()
                                      else 0},
                     "plan_cache": _folder(DEFAULT_PLAN_CACHE), "jax_cache": _folder(DEFAULT_CACHE_DIR)},

@@ -167,8 +167,7 @@ def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
     assert facts["versions"]["robodojo"] and facts["versions"]["mujoco"] and facts["versions"]["jax"]
     assert facts["system"]["cpu_cores"] >= 1
     assert facts["devices"]["jax_backend"].split()[0] in ("cpu", "gpu", "cuda")
-    assert set(facts["devices"]) == {"gpus", "jax_backend", "mujoco_warp", "rendering", "shared_memory"}
-    assert "/dev/shm" in facts["devices"]["shared_memory"]
+    assert set(facts["devices"]) == {"gpus", "jax_backend", "mujoco_warp", "rendering"}
     assert facts["folders"]["results_root"] == {"path": str(tmp_path / "results"), "exists": False, "bytes": 0,
                                                 "runs": 0}
     text = dojo("doctor", cwd=tmp_path)
