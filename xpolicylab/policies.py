@@ -36,8 +36,9 @@ class _ReferencePolicy(Model):
         if self.chunk_size < 1:
             raise ValueError("chunk_size must be at least 1")
         self.cameras = tuple(str(c) for c in self.config.get("cameras") or ())
-        self.image_size = (self.config.get("width"), self.config.get("height"))
-        if any(v is not None and int(v) < 1 for v in self.image_size):
+        self.image_size = tuple(None if v is None else int(v) for v in (self.config.get("width"),
+                                                                           self.config.get("height")))
+        if any(v is not None and v < 1 for v in self.image_size):
             raise ValueError(f"width and height must be positive, got {self.image_size}")
         self._obs: dict[Hashable, Observation] = {}
 
@@ -46,7 +47,7 @@ class _ReferencePolicy(Model):
         return PolicyMetadata(name=self.policy_name, action_mode=self.action_mode, chunk_size=self.chunk_size,
                               action_dim=self.embodiment.action_dim(self.action_mode),
                               embodiment=self.embodiment.name, cameras=self.cameras,
-                              image_width=_size(self.image_size[0]), image_height=_size(self.image_size[1]),
+                              image_width=self.image_size[0], image_height=self.image_size[1],
                               batch=True)
 
     def current_pose(self, obs: Observation) -> np.ndarray:
@@ -73,10 +74,6 @@ class _ReferencePolicy(Model):
 
     def update_obs_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> None:
         self._obs.update(zip(env_ids, obs_list, strict=True))
-
-
-def _size(value: Any) -> int | None:
-    return None if value is None else int(value)
 
 
 class ZeroPolicy(_ReferencePolicy):
