@@ -13,10 +13,6 @@
   with the same graphs on one stream beside it;
 - `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped.
 
-Under MuJoCo Warp the kernels of every bucket the modes step are compiled first, side by side on threads
-(`kernel_warmup`, `backend.kernel_threads`; its seconds under `kernels`): a cold start is those seconds plus a
-mode's `setup_s`.
-
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
 
@@ -157,12 +153,6 @@ def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup
     return measure_streams(buckets, sizes, controls, steps, warmup)
 
 
-def _stepped(modes: Sequence[str], buckets: list[Bucket], merged: list[Bucket]) -> list[Bucket]:
-    """The buckets the modes step: the separate ones, the merged ones, or both."""
-    separate = buckets if {"heterogeneous", "homogeneous", "streams"} & set(modes) else []
-    return separate + (merged if {"merged", "merged_streams"} & set(modes) else [])
-
-
 def _device_counts(devices: Any) -> list[int]:
     """`backend.devices` as the sorted device counts to measure: one count, `all`, or a list such as [1,4]."""
     from dojo.backends.mjx.sharding import local_devices
@@ -228,9 +218,8 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls; `kernel_threads`, `kernel_warmup`), `modes` (subset of MJX_MODES;
-    backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
-    `cache_dir` (persistent compilation cache).
+    CUDA graph capture of Warp calls), `modes` (subset of MJX_MODES; backend=mujoco is `cpu` alone), `cpu_envs`,
+    `cpu_steps` (the size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -286,7 +275,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
-    from dojo.backends.mjx.kernel_warmup import warm_kernels
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     on_streams = bool({"streams", "merged_streams"} & set(modes))
@@ -319,15 +307,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "graph_mode": backend.get("graph_mode") if graphs is not None else None,
     }
     out["devices"] = widest.count
-    merged: list[Bucket] = []
-    if {"merged", "merged_streams"} & set(modes):
-        start = time.perf_counter()
-        growth = merge_growth(backend.get("merge_growth"))
-        merged = make_buckets(plans, merge=True, growth=growth)
-        merge_s = time.perf_counter() - start
-    if impl == "warp":  # every mode's Warp kernels, compiled side by side before the first engine is built
-        threads = backend.get("kernel_threads", "auto")
-        out["kernels"] = warm_kernels(_stepped(modes, buckets, merged), threads).figures()
     if "heterogeneous" in modes:
         runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs) for n in counts}
         out["heterogeneous"] = _rates([runs[counts[-1]]])
@@ -340,7 +319,11 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
                                      for b, n in zip(buckets, sizes)])
     if "streams" in modes:
         out["streams"] = _streams(buckets, sizes, steps, warmup)
-    if merged:
+    if {"merged", "merged_streams"} & set(modes):
+        start = time.perf_counter()
+        growth = merge_growth(backend.get("merge_growth"))
+        merged = make_buckets(plans, merge=True, growth=growth)
+        merge_s = time.perf_counter() - start
         merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
         about = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
                  "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged)}
