@@ -51,6 +51,7 @@ MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged", "merged
 """`streams` and `merged_streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) need MuJoCo
 Warp, and `merged` pays only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower
 on a CPU): all three are asked for by name."""
+STREAM_MODES = frozenset({"streams", "merged_streams"})
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
 log = logging.getLogger(__name__)
@@ -269,6 +270,18 @@ def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:
             **{k: cpu[k] for k in ("reset_ms_mean", "reset_ms_max", "load_average_1min")}}
 
 
+def jax_memory_settings(modes: Sequence[str]) -> dict[str, str]:
+    """JAX's share of the GPU beside the stream engines, which allocate through Warp: JAX takes 75% of the GPU
+    when it starts, by default. With stream modes alone JAX holds a few control arrays and reserves nothing up
+    front (the 24-task mix merged into 13 buckets at 16,384 environments ran out of memory in its second engine on
+    an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets half."""
+    if not STREAM_MODES & set(modes):
+        return {}
+    if set(modes) <= STREAM_MODES:
+        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
+
+
 def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:
     import jax
 
@@ -277,9 +290,9 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
     from dojo.backends.mjx.sharding import Placement, local_devices
 
-    on_streams = bool({"streams", "merged_streams"} & set(modes))
-    if on_streams:  # JAX takes 75% of the GPU when it starts; the streams engine allocates through Warp
-        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")
+    on_streams = bool(STREAM_MODES & set(modes))
+    for name, value in jax_memory_settings(modes).items():  # before JAX starts on the GPU
+        os.environ.setdefault(name, value)
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
     graphs = graph_mode(backend.get("graph_mode"), impl)

@@ -122,3 +122,11 @@ def test_streams_modes_refuse_the_jax_implementation(tmp_path):
     result = _bench("backend.impl=jax", "modes=[merged_streams]", cwd=tmp_path)
     assert result.returncode == 1
     assert "'streams' and 'merged_streams' run MuJoCo Warp" in result.stderr
+
+
+def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run():
+    from dojo.bench.sim_bench import jax_memory_settings
+
+    assert jax_memory_settings(["heterogeneous"]) == {}
+    assert jax_memory_settings(["streams", "merged_streams"]) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert jax_memory_settings(["heterogeneous", "streams"]) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
