@@ -84,7 +84,7 @@ def show_task(cfg: DictConfig) -> int:
 
 
 def bench_task(cfg: DictConfig) -> int:
-    """`dojo bench sim|render`: run the benchmark and print its one JSON line of figures."""
+    """`dojo bench sim|render|kernels`: run the benchmark and print its one JSON line of figures."""
     import json
 
     from omegaconf import OmegaConf
@@ -97,8 +97,12 @@ def bench_task(cfg: DictConfig) -> int:
         ensure_headless_gl()
         from dojo.bench.render_bench import bench_render
         figures = bench_render(settings)
+    elif cfg.what == "kernels":
+        from dojo.bench.warp_modules import bench_kernels
+        figures = bench_kernels(settings)
     else:
-        print(f"dojo bench: unknown benchmark '{cfg.what}'; one of sim, render, policy", file=sys.stderr)
+        print(f"dojo bench: unknown benchmark '{cfg.what}'; one of sim, render, kernels, policy, ray",
+              file=sys.stderr)
         return 2
     print(json.dumps(figures))
     return 0

@@ -1,0 +1,34 @@
+"""`dojo bench kernels` (`dojo.bench.warp_modules`): MuJoCo Warp's modules per bucket, recorded on Warp's CPU device
+without compiling. Needs warp-lang, which the plain install leaves out (GPU machines have it)."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import toy_plan
+
+from dojo.backends.mjx.bucket import make_buckets
+
+warp = pytest.importorskip("warp")
+
+
+def test_modules_are_recorded_per_bucket_and_shared_ones_counted_once():
+    from dojo.bench.warp_modules import bucket_modules, kernel_figures
+
+    buckets = make_buckets([toy_plan(task="a"), toy_plan(task="b", items=("ball",))])
+    assert len(buckets) == 2
+    sets = [bucket_modules(b) for b in buckets]
+    figures = kernel_figures(buckets)
+    assert figures["modules"] == len(sets[0] | sets[1]) < len(sets[0]) + len(sets[1])
+    assert figures["shared_by_every_bucket"] == len(sets[0] & sets[1]) > 0
+    # the ball brings sphere pairs: a collision kernel of its own that the box-only scene does not launch
+    ball = figures["per_bucket"][buckets[1].key]
+    assert any(name.startswith("_primitive_narrowphase") for name in ball["own"]), ball["own"]
+    assert set(ball["own"]) == sets[1] - sets[0]
+
+
+def test_recording_leaves_warp_as_it_was():
+    from dojo.bench.warp_modules import bucket_modules
+
+    launch, capture_while = warp.launch, warp.capture_while
+    bucket_modules(make_buckets([toy_plan()])[0])
+    assert warp.launch is launch and warp.capture_while is capture_while
