@@ -219,8 +219,10 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls), `modes` (subset of MJX_MODES; backend=mujoco is `cpu` alone), `cpu_envs`,
-    `cpu_steps` (the size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
+    CUDA graph capture of Warp calls), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
+    `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes` (subset of MJX_MODES;
+    backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
+    `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -288,6 +290,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
+    from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     on_streams = bool(STREAM_MODES & set(modes))
@@ -306,7 +309,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     steps, warmup = int(cfg.get("steps", 20)), int(cfg.get("warmup", 3))
     start = time.perf_counter()
     plans = load_plans(cfg)
-    buckets = make_buckets(plans)
+    quantum = int(cfg.get("dof_quantum") or 1)
+    buckets = [round_bucket(b, quantum) for b in make_buckets(plans)]
     log.info("%d plans in %d buckets (%.1f s)", len(plans), len(buckets), time.perf_counter() - start)
     counts = _device_counts(backend.get("devices"))
     placements = {n: Placement.over(local_devices(n), impl) for n in counts}
@@ -318,6 +322,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
         "graph_mode": backend.get("graph_mode") if graphs is not None else None,
+        "dof_quantum": quantum, "bucket_nv": [int(b.model.nv) for b in buckets],
     }
     out["devices"] = widest.count
     if "heterogeneous" in modes:
@@ -335,7 +340,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     if {"merged", "merged_streams"} & set(modes):
         start = time.perf_counter()
         growth = merge_growth(backend.get("merge_growth"))
-        merged = make_buckets(plans, merge=True, growth=growth)
+        merged = [round_bucket(b, quantum) for b in make_buckets(plans, merge=True, growth=growth)]
         merge_s = time.perf_counter() - start
         merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
         about = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,

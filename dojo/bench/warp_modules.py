@@ -109,18 +109,23 @@ def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:
 
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`), bucketed as the mjx
-    backend would (`backend.merge`, `backend.merge_growth`), and the Warp modules their steps need."""
+    backend would (`backend.merge`, `backend.merge_growth`; `dof_quantum`: their DoFs rounded up, `dof_rounding`),
+    and the Warp modules their steps need."""
     from importlib.metadata import version
 
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
+    from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.bench.sim_bench import load_plans
 
     backend = cfg.get("backend") or {}
     plans = load_plans(cfg)
     merge = bool(backend.get("merge", False))
-    buckets = make_buckets(plans, merge=merge, growth=merge_growth(backend.get("merge_growth")))
+    quantum = int(cfg.get("dof_quantum") or 1)
+    buckets = [round_bucket(b, quantum)
+               for b in make_buckets(plans, merge=merge, growth=merge_growth(backend.get("merge_growth")))]
     log.info("%d plans in %d buckets", len(plans), len(buckets))
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "merge": merge,
+            "dof_quantum": quantum,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
             **kernel_figures(buckets)}

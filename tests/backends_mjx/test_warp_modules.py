@@ -32,3 +32,15 @@ def test_recording_leaves_warp_as_it_was():
     launch, capture_while = warp.launch, warp.capture_while
     bucket_modules(make_buckets([toy_plan()])[0])
     assert warp.launch is launch and warp.capture_while is capture_while
+
+
+def test_buckets_rounded_to_one_dof_count_share_their_solver_kernels():
+    from dojo.backends.mjx.dof_rounding import round_bucket
+    from dojo.bench.warp_modules import kernel_figures
+
+    buckets = make_buckets([toy_plan(task="a"), toy_plan(task="b", items=("ball",))])
+    apart = kernel_figures(buckets)
+    rounded = kernel_figures([round_bucket(b, 16) for b in buckets])
+    assert rounded["modules"] < apart["modules"]
+    jaref = "_solve_init_jaref_kernel"
+    assert rounded["generated_kernels"][jaref] == 1 < apart["generated_kernels"][jaref]
