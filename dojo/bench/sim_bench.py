@@ -219,10 +219,10 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls; `warp_optimization`, Warp's kernel optimisation level), `dof_quantum`
-    (every bucket's DoFs rounded up to a multiple of it, `dof_rounding`: fewer Warp kernels to compile, larger
-    models; 1: off), `modes` (subset of MJX_MODES; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the
-    size of the CPU baseline of an mjx measurement), `cache_dir` (persistent compilation cache).
+    CUDA graph capture of Warp calls), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
+    `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes` (subset of MJX_MODES;
+    backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
+    `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -289,8 +289,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
-    from dojo.backends.mjx.cache import apply_warp_optimization, choose_impl, describe_impl
-    from dojo.backends.mjx.cache import enable_compilation_cache, graph_mode, warp_optimization
+    from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.backends.mjx.sharding import Placement, local_devices
 
@@ -300,8 +299,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
     graphs = graph_mode(backend.get("graph_mode"), impl)
-    opt = warp_optimization(backend.get("warp_optimization"))
-    apply_warp_optimization(opt, impl)
     if on_streams and impl != "warp":
         raise ValueError("bench sim modes 'streams' and 'merged_streams' run MuJoCo Warp: they need "
                          "backend.impl=warp on an NVIDIA GPU")
@@ -326,7 +323,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
         "graph_mode": backend.get("graph_mode") if graphs is not None else None,
         "dof_quantum": quantum, "bucket_nv": [int(b.model.nv) for b in buckets],
-        "warp_optimization": opt if impl == "warp" else None,
     }
     out["devices"] = widest.count
     if "heterogeneous" in modes:

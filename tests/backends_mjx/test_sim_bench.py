@@ -130,14 +130,3 @@ def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run():
     assert jax_memory_settings(["heterogeneous"]) == {}
     assert jax_memory_settings(["streams", "merged_streams"]) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     assert jax_memory_settings(["heterogeneous", "streams"]) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
-
-
-def test_warp_optimization_levels_are_checked_on_any_machine():
-    from dojo.backends.mjx.cache import apply_warp_optimization, warp_optimization
-
-    assert warp_optimization(None) is None and warp_optimization("") is None
-    assert [warp_optimization(v) for v in (0, "1", 3)] == [0, 1, 3]
-    for bad in (4, -1, "fast", 1.5, "2.0"):
-        with pytest.raises(ValueError, match=r"backend.warp_optimization must be one of \(0, 1, 2, 3\)"):
-            warp_optimization(bad)
-    apply_warp_optimization(1, "jax")  # nothing to set under jax: Warp is not even imported

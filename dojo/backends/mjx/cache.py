@@ -82,37 +82,6 @@ def graph_mode(name: str | None, impl: str) -> object | None:
     return getattr(wp.JaxCallableGraphMode, str(name).upper())
 
 
-WARP_OPTIMIZATION_LEVELS = (0, 1, 2, 3)
-"""`backend.warp_optimization`: Warp's kernel optimisation level (`warp.config.optimization_level`; null: Warp's
-own, 3 for CUDA). A lower level compiles faster and runs slower: a cold start compiles about 97 Warp modules one
-after another (140-191 s on H100 machines for the 24 simulation tasks, 2026-11-28), and the run pays the slower
-kernels from then on. Warp applies levels below 3 from CUDA 12.9 on. Neither side measured on a GPU yet."""
-
-
-def warp_optimization(level: int | str | None) -> int | None:
-    """`backend.warp_optimization` checked: None (Warp's default) or one of WARP_OPTIMIZATION_LEVELS."""
-    if level in (None, ""):
-        return None
-    try:
-        value = int(level)
-    except (TypeError, ValueError):
-        value = -1
-    if value not in WARP_OPTIMIZATION_LEVELS or str(value) != str(level).strip():
-        raise ValueError(f"backend.warp_optimization must be one of {WARP_OPTIMIZATION_LEVELS} or null (Warp's "
-                         f"default), got {level!r}")
-    return value
-
-
-def apply_warp_optimization(level: int | None, impl: str) -> None:
-    """Set Warp's kernel optimisation level for every module compiled from now on (under `impl` warp only;
-    None leaves Warp's default). Each level's kernels are cached apart: the level is part of a module's hash."""
-    if level is None or impl != "warp":
-        return
-    import warp as wp
-
-    wp.config.optimization_level = level
-
-
 def quiet_warp() -> None:
     """Warp logs at WARNING and above only (its INFO lines go to stdout)."""
     import warp as wp
