@@ -118,6 +118,11 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.bench.sim_bench import load_plans
 
+    try:
+        import warp  # noqa: F401
+    except ImportError:
+        raise RuntimeError("dojo bench kernels needs warp-lang (pip install 'warp-lang>=1.19'); MuJoCo Warp itself "
+                           "ships inside mujoco-mjx") from None
     backend = cfg.get("backend") or {}
     plans = load_plans(cfg)
     merge = bool(backend.get("merge", False))

@@ -3,14 +3,28 @@ without compiling. Needs warp-lang, which the plain install leaves out (GPU mach
 
 from __future__ import annotations
 
+import importlib.util
+import subprocess
+import sys
+
 import pytest
 from conftest import toy_plan
 
 from dojo.backends.mjx.bucket import make_buckets
 
-warp = pytest.importorskip("warp")
+HAS_WARP = importlib.util.find_spec("warp") is not None
+needs_warp = pytest.mark.skipif(not HAS_WARP, reason="needs warp-lang")
 
 
+@pytest.mark.skipif(HAS_WARP, reason="checks the message given where warp-lang is missing")
+def test_without_warp_the_command_says_what_to_install(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "kernels", "tasks=[push_t]", "episodes=1"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and done.stdout == ""
+    assert "dojo bench kernels needs warp-lang (pip install 'warp-lang>=1.19')" in done.stderr
+
+
+@needs_warp
 def test_modules_are_recorded_per_bucket_and_shared_ones_counted_once():
     from dojo.bench.warp_modules import bucket_modules, kernel_figures
 
@@ -26,7 +40,10 @@ def test_modules_are_recorded_per_bucket_and_shared_ones_counted_once():
     assert set(ball["own"]) == sets[1] - sets[0]
 
 
+@needs_warp
 def test_recording_leaves_warp_as_it_was():
+    import warp
+
     from dojo.bench.warp_modules import bucket_modules
 
     launch, capture_while = warp.launch, warp.capture_while
@@ -34,6 +51,7 @@ def test_recording_leaves_warp_as_it_was():
     assert warp.launch is launch and warp.capture_while is capture_while
 
 
+@needs_warp
 def test_buckets_rounded_to_one_dof_count_share_their_solver_kernels():
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.bench.warp_modules import kernel_figures
