@@ -7,11 +7,10 @@ generates kernels per model (its DoF count's solver kernels, its collision pairs
 number of distinct modules is a property of the buckets' models, and that can be counted without a GPU.
 
 How. One MuJoCo Warp step of one world of each bucket's model runs on Warp's CPU device with the launches recorded
-instead of executed: `wp.launch` and `wp.launch_tiled` note the module of a kernel launched over a non-empty grid
-(Warp loads no module for an empty launch), and `wp.capture_while` / `wp.capture_if` run their bodies once. Nothing
-is compiled and nothing is simulated: seconds for the whole mix. Checked against the GPU on the 24 simulation tasks
-(H100, 2026-11-28): 95 of the 96 kernel names recorded here are the modules that machine compiled for the same
-buckets (the one apart is a sparse-solver kernel whose block size comes from the device).
+instead of executed (`warp_launches`): nothing is compiled and nothing is simulated, seconds for the whole mix.
+Checked against the GPU on the 24 simulation tasks (H100, 2026-11-28): 95 of the 96 kernel names recorded here are
+the modules that machine compiled for the same buckets (the one apart is a sparse-solver kernel whose block size
+comes from the device).
 
 Counts only: a module's compile time varies from under a second to about 19 s (a convex-convex collision kernel).
 Needs warp-lang (any machine; MuJoCo Warp ships inside mujoco-mjx).
@@ -22,14 +21,11 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from contextlib import ExitStack
-from typing import Any, Callable, Sequence
-from unittest import mock
-
-import numpy as np
+from typing import Any, Sequence
 
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.warp_launches import recorded_launches
 
 log = logging.getLogger(__name__)
 NAMED_KERNEL = "__locals__"
@@ -44,50 +40,10 @@ def _module_name(module: Any) -> str:
     return f"{module.name}_{module.get_module_hash().hex()[:7]}"
 
 
-def _empty(dim: Any) -> bool:
-    if dim is None:
-        return False
-    return int(np.prod(dim if isinstance(dim, (tuple, list)) else [dim])) == 0
-
-
-def _recording(wp: Any, seen: set[str]) -> ExitStack:
-    """Warp's launch and conditional-capture functions replaced by recorders until the stack closes."""
-
-    def launch(kernel: Any, *args: Any, **kwargs: Any) -> None:
-        if not _empty(kwargs.get("dim", args[0] if args else None)):
-            seen.add(_module_name(kernel.module))
-
-    def capture_while(condition: Any, while_body: Callable[..., None], **kwargs: Any) -> None:
-        while_body(**kwargs)
-
-    def capture_if(condition: Any, on_true: Callable[..., None] | None = None,
-                   on_false: Callable[..., None] | None = None, **kwargs: Any) -> None:
-        for branch in (on_true, on_false):
-            if callable(branch):
-                branch(**kwargs)
-
-    stack = ExitStack()
-    for name, stand_in in (("launch", launch), ("launch_tiled", launch), ("capture_while", capture_while),
-                           ("capture_if", capture_if)):
-        stack.enter_context(mock.patch.object(wp, name, stand_in))
-    return stack
-
-
 def bucket_modules(bucket: Bucket) -> set[str]:
-    """The Warp modules one step of `bucket`'s model launches, with the engine's contact and row capacities."""
-    import warp as wp
-    from mujoco.mjx.third_party import mujoco_warp as mjw
-
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
-    seen: set[str] = set()
-    contacts, rows = contact_capacity(bucket)
-    with wp.ScopedDevice("cpu"):
-        model = mjw.put_model(bucket.model)
-        data = mjw.make_data(bucket.model, nworld=1, naconmax=contacts, njmax=rows)
-        with _recording(wp, seen):
-            mjw.step(model, data)
-    return seen
+    """The Warp modules one step of `bucket`'s model launches (`warp_launches`, on Warp's CPU device: any machine),
+    by name; a module launched with several block sizes counts once."""
+    return {_module_name(module) for module, _ in recorded_launches(bucket, "cpu").values()}
 
 
 def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:

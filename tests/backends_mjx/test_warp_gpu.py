@@ -149,3 +149,46 @@ def test_graph_modes_step_what_the_default_steps_and_allow_a_second_batch_size(w
     wider = final_qpos([2 * B] * len(buckets), graph_mode(mode, "warp"))
     for a, b in zip(default, wider):
         np.testing.assert_allclose(a, b[:B], atol=1e-5)  # world i runs member i mod n at either size
+
+
+WARMED_THEN_STEPPED = """
+import os
+from pathlib import Path
+import numpy as np
+from conftest import toy_plan
+from dojo.backends.mjx.batch import Engine
+from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.kernel_warmup import warm_kernels
+
+def modules():
+    return {p.name for p in Path(os.environ["WARP_CACHE_PATH"]).rglob("wp_*") if p.is_dir()}
+
+buckets = make_buckets([toy_plan(task="a"), toy_plan(task="b", items=("ball",)), toy_plan(task="c", items=("box",))])
+warm = warm_kernels(buckets, 4)
+assert warm.compiled > 0 and not warm.failed, warm
+warmed = modules()
+sizes = [4] * len(buckets)
+engine = Engine(buckets, sizes, "warp")
+members = [np.arange(n) % len(b.members) for b, n in zip(buckets, sizes)]
+ctrl = [np.zeros((n, b.model.nu), np.float32) for b, n in zip(buckets, sizes)]
+engine.tick(members, [np.ones(n, bool) for n in sizes], [np.zeros(n, bool) for n in sizes], ctrl)
+engine.tick(members, [np.zeros(n, bool) for n in sizes], [np.ones(n, bool) for n in sizes], ctrl)
+engine.check_overflow()
+print(len(warmed), sorted(m for m in modules() - warmed if "mjx.warp.ffi" not in m))
+"""
+
+
+def test_kernels_compiled_ahead_leave_the_engine_nothing_to_compile(warp_ready, tmp_path):
+    """In a fresh process over an empty Warp kernel cache: the warm-up compiles (on threads, without loading)
+    every MuJoCo Warp module the engine's first ticks launch, so those ticks add none but MJX's own FFI module."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", WARMED_THEN_STEPPED], cwd=Path(__file__).parent, env=env,
+                          capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr[-3000:]
+    warmed, added = done.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert int(warmed) > 0 and added == "[]", done.stdout[-2000:]

@@ -36,8 +36,9 @@ if _printed.getvalue().strip():
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
-    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`) and
-    `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null: MJX's own default).
+    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`),
+    `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null: MJX's own default) and
+    `kernel_threads` (threads compiling MuJoCo Warp's kernels ahead of the first step, `kernel_warmup`; 0: none).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     from pathlib import Path
@@ -58,7 +59,8 @@ def make(options: BackendOptions) -> MjxBackend:
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
                          merge=bool(options.settings.get("merge", False)),
                          merge_growth=merge_growth(options.settings.get("merge_growth")),
-                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes)
+                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
+                         kernel_threads=options.settings.get("kernel_threads", 0))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 
