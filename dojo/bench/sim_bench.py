@@ -219,10 +219,10 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls; `kernel_threads`, `kernel_warmup`), `dof_quantum` (every bucket's DoFs
-    rounded up to a multiple of it, `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes`
-    (subset of MJX_MODES; backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of
-    an mjx measurement), `cache_dir` (persistent compilation cache).
+    CUDA graph capture of Warp calls), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
+    `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes` (subset of MJX_MODES;
+    backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
+    `cache_dir` (persistent compilation cache).
     """
     backend = cfg.get("backend") or {}
     name = str(backend.get("name", "mjx"))
@@ -291,7 +291,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
     from dojo.backends.mjx.dof_rounding import round_bucket
-    from dojo.backends.mjx.kernel_warmup import warm_kernels
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     on_streams = bool(STREAM_MODES & set(modes))
@@ -326,15 +325,6 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "dof_quantum": quantum, "bucket_nv": [int(b.model.nv) for b in buckets],
     }
     out["devices"] = widest.count
-    merged: list[Bucket] = []
-    if {"merged", "merged_streams"} & set(modes):
-        start = time.perf_counter()
-        growth = merge_growth(backend.get("merge_growth"))
-        merged = [round_bucket(b, quantum) for b in make_buckets(plans, merge=True, growth=growth)]
-        merge_s = time.perf_counter() - start
-    if impl == "warp":  # every mode's kernels compiled ahead, side by side (kernel_threads=0: as each engine goes)
-        stepped = (buckets if {"heterogeneous", "homogeneous", "streams"} & set(modes) else []) + merged
-        out["kernels"] = warm_kernels(stepped, backend.get("kernel_threads", 0)).figures()
     if "heterogeneous" in modes:
         runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs) for n in counts}
         out["heterogeneous"] = _rates([runs[counts[-1]]])
@@ -347,7 +337,11 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
                                      for b, n in zip(buckets, sizes)])
     if "streams" in modes:
         out["streams"] = _streams(buckets, sizes, steps, warmup)
-    if merged:
+    if {"merged", "merged_streams"} & set(modes):
+        start = time.perf_counter()
+        growth = merge_growth(backend.get("merge_growth"))
+        merged = [round_bucket(b, quantum) for b in make_buckets(plans, merge=True, growth=growth)]
+        merge_s = time.perf_counter() - start
         merged_sizes = [widest.padded(n) for n in split_batch(merged, sum(sizes))]
         about = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
                  "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged)}

@@ -1,9 +1,9 @@
 """`dojo bench kernels`: which MuJoCo Warp modules a cold start of a task mix compiles, found on any machine.
 
 Why. On an empty Warp kernel cache an engine compiles every module its buckets' steps launch, one after another:
-the 24 simulation tasks' 29 buckets compiled 97 modules in 140-191 s on H100 machines (2026-11-28), and loading
-them on threads or in worker processes made that longer (README, speed). Two levers are left: compiling ahead
-without loading (`kernel_warmup`, which records launches the same way) and needing fewer modules. MuJoCo Warp
+the 24 simulation tasks' 29 buckets compiled 97 modules in 140-191 s on H100 machines and 128 s on an H200
+(2026-11-28), and compiling or loading them on threads or in worker processes made that longer (README, speed).
+The lever left is needing fewer modules. MuJoCo Warp
 generates kernels per model (its DoF count's solver kernels, its collision pairs, its constraint row count), so the
 number of distinct modules is a property of the buckets' models, and that can be counted without a GPU.
 

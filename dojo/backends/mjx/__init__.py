@@ -36,9 +36,8 @@ if _printed.getvalue().strip():
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
-    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`),
-    `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null: MJX's own default) and
-    `kernel_threads` (threads compiling MuJoCo Warp's kernels ahead of the first step, `kernel_warmup`; 0: none).
+    `merge_growth` (how much larger than its largest task a merged model may be; null: `merge_groups.GROWTH`) and
+    `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null: MJX's own default).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     from pathlib import Path
@@ -59,8 +58,7 @@ def make(options: BackendOptions) -> MjxBackend:
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
                          merge=bool(options.settings.get("merge", False)),
                          merge_growth=merge_growth(options.settings.get("merge_growth")),
-                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
-                         kernel_threads=options.settings.get("kernel_threads", 0))
+                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes)
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

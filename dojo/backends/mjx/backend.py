@@ -51,7 +51,6 @@ from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
-from dojo.backends.mjx.kernel_warmup import thread_count, warm_kernels
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
@@ -234,8 +233,7 @@ class MjxBackend(Backend):
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
                  merge: bool = False, merge_growth: float = GROWTH,
-                 graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None,
-                 kernel_threads: int | str | None = 0) -> None:
+                 graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
@@ -249,9 +247,7 @@ class MjxBackend(Backend):
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
         None: MJX's own default).
         `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
-        when one of them is among these, and `step` refuses the others.
-        `kernel_threads`: under `warp`, threads compiling every bucket's MuJoCo Warp kernels ahead of the engine's
-        first step (`kernel_warmup`; `auto`: one per CPU core; 0: none, the engine compiles them as it goes)."""
+        when one of them is among these, and `step` refuses the others."""
         self.action_modes = tuple(action_modes) if action_modes is not None else MODES
         unknown = [m for m in self.action_modes if m not in MODES]
         if unknown:
@@ -263,7 +259,6 @@ class MjxBackend(Backend):
         self.impl = choose_impl(impl)
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
-        self.kernel_threads = thread_count(kernel_threads)  # a bad setting fails here, on any machine
         log.info("mjx backend: %s%s", describe_impl(self.impl),
                  f", CUDA graphs: {graph_mode}" if self.graph_mode is not None else "")
         self._known: dict[str, Any] = {}
@@ -316,8 +311,6 @@ class MjxBackend(Backend):
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
-        if self.impl == "warp":
-            warm_kernels(self._buckets, self.kernel_threads)
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
                               placement=self.placement, graph_mode=self.graph_mode)
         if self.render_config is not None:

@@ -2,8 +2,8 @@
 
 Why. On an empty kernel cache an engine compiles every Warp module its buckets' steps launch, one module after
 another, at the launch that first needs it. Which modules those are (and with which block size, which selects the
-compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs: for
-`dojo bench kernels` (how many) and `kernel_warmup` (compile them side by side ahead of the engine).
+compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs: `dojo bench kernels` counts them
+this way, to judge how many modules a change of the buckets' structures saves.
 
 How. One world of the bucket steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
 block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch) and
