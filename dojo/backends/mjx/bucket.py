@@ -27,7 +27,7 @@ from mujoco.mjx._src import types as mjx_types
 
 from dojo.compiler.plan import Plan
 
-from dojo.backends.mjx.merge_groups import GROWTH, Cluster, Unit, cluster, plans_of
+from dojo.backends.mjx.merge_groups import GROWTH, Cluster, Unit, cluster, padding_groups, plans_of
 from dojo.backends.mjx.pad import PaddedPlan, pad_group
 
 _HINTS = typing.get_type_hints(mjx_types.Model)
@@ -137,6 +137,14 @@ def _padded_members(plans: Sequence[Plan], name: str, every_object: bool) -> dic
     return dict(sorted(out.items()))
 
 
+def _task_members(plans: Sequence[Plan], task: str, growth: float) -> list[tuple[str, list[Member]]]:
+    """One task's plans (of one setting and sub-steps) padded in groups whose union stays within `1 + growth` of
+    their largest plan (`merge_groups.padding_groups`), as (signature, members); groups that come out with one
+    structure share its bucket."""
+    return [item for group in padding_groups(plans, growth)
+            for item in _padded_members(group, task, every_object=False).items()]
+
+
 def _one_structure(a: Cluster, b: Cluster, robot: str) -> bool:
     """Whether two clusters' plans, padded together, would compile to one structure, asked of one plan of each: what
     splits plans padded together lies outside the slots (skybox, options, equality constraints), where a cluster's
@@ -154,7 +162,7 @@ def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float) -> list[t
     members_of: dict[str, list[Member]] = {}
     signatures: dict[str, str] = {}
     for task in sorted(by_task):
-        for k, alike in enumerate(_padded_members(by_task[task], task, every_object=False).values()):
+        for k, (_, alike) in enumerate(_task_members(by_task[task], task, growth)):
             for signature, members in _padded_members([m.plan for m in alike], robot, every_object=True).items():
                 key = f"{task}:{k}:{signature[:16]}"
                 units.append(Unit.measure(key, [m.plan for m in members], members[0].padded, members[0].model))
@@ -172,7 +180,9 @@ def make_buckets(plans: Sequence[Plan], merge: bool = False, growth: float = GRO
     """Group plans into buckets of one structure each, in a deterministic order.
 
     The plans of each (task, setting) are first padded to a common structure (see pad.py), so that they need few
-    buckets; settings are padded apart so that `standard` scenes do not carry `random` clutter slots. Different
+    buckets, in groups whose padded model stays within `1 + growth` of the group's largest plan
+    (`merge_groups.padding_groups`: random clutter is mostly one of a kind); settings are padded apart so that
+    `standard` scenes do not carry `random` clutter slots. Different
     tasks never share a bucket. With `merge`, the tasks of each (robot, setting, sub-steps) are clustered
     (merge_groups.py: greedily, while the merged model's DoFs and geoms stay within `1 + growth` of its largest
     task's own; `growth=math.inf` merges every task whose scene allows it) and each cluster's plans are padded
@@ -188,6 +198,6 @@ def make_buckets(plans: Sequence[Plan], merge: bool = False, growth: float = GRO
             for signature, members in _merged(by_group[name, setting, substeps], name, growth):
                 groups[f"{name}:{substeps}:{signature[:16]}"] += members
         else:
-            for signature, members in _padded_members(by_group[name, setting, substeps][name], name, False).items():
+            for signature, members in _task_members(by_group[name, setting, substeps][name], name, growth):
                 groups[f"{name}:{signature[:16]}"] += members
     return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]

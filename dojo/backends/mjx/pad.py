@@ -14,7 +14,10 @@ structure, leaving only *values* (poses, sizes, masses, colours, light parameter
   Plans with different clutter counts therefore share a bucket.
 - lights: padded to the group's largest count with inactive lights (`light_active` is a per-environment value).
 - textures, materials, meshes: every plan's asset section gets the union of the group's 2-D textures, materials
-  and meshes in one canonical order (`geom_matid` and `mat_texid` are values). Skyboxes are left as they are:
+  and meshes in one canonical order (`geom_matid` and `mat_texid` are values). A name that stands for different
+  contents in different plans (the compiler names a mesh after its geom, so `clutter_0/body_0` is a bottle at one
+  scale in one plan and a cup in the next) is first made unique per content (`_content_names`), so that the union
+  holds every plan's own geometry and a slot's key tells different meshes apart. Skyboxes are left as they are:
   the renderer draws only one, so plans with different skyboxes stay in different buckets.
 - the model, clutter, light and skybox names are canonical (name offsets are static fields), and so are clutter
   sites' sizes (`site_size` is static; clutter annotations are never read by a task's program).
@@ -176,15 +179,90 @@ def _park(body: ET.Element, index: int) -> None:
         el.set("gravcomp", "1")
 
 
+def _unioned(root: ET.Element) -> list[ET.Element]:
+    """A plan's asset elements that the union replaces: 2-D textures, materials and meshes (skyboxes stay)."""
+    return [el for el in (root.find("asset") or []) if el.tag in _UNIONED_ASSETS and el.get("type") != "skybox"]
+
+
+def _content(el: ET.Element) -> str:
+    """What an asset element defines, without its name: its attributes and children, canonically."""
+    body = copy.deepcopy(el)
+    body.attrib.pop("name", None)
+    body.attrib = dict(sorted(body.attrib.items()))
+    return hashlib.sha256(ET.tostring(body, encoding="unicode").encode()).hexdigest()[:12]
+
+
+def _content_names(roots: Sequence[ET.Element]) -> None:
+    """Rename, in place, every unioned asset whose name the group's plans define with different contents to
+    `<name>~<content hash>`, with the references to it in its own plan. The union keeps one definition per name, so
+    without this a plan padded with others would silently take the first plan's mesh (or texture) of that name.
+    Names defined alike everywhere are left as they are."""
+    contents: dict[tuple[str, str], set[str]] = {}
+    for root in roots:
+        for el in _unioned(root):
+            contents.setdefault((el.tag, el.get("name", "")), set()).add(_content(el))
+    clashing = {key for key, found in contents.items() if len(found) > 1}
+    if not clashing:
+        return
+    for root in roots:
+        renamed: dict[tuple[str, str], str] = {}
+        for el in _unioned(root):
+            key = (el.tag, el.get("name", ""))
+            if key in clashing:
+                renamed[key] = f"{key[1]}~{_content(el)}"
+                el.set("name", renamed[key])
+        for el in root.iter():  # a reference is an attribute named after the asset's tag (geom mesh=, material=)
+            for tag in _UNIONED_ASSETS:
+                new = renamed.get((tag, el.get(tag, "")))
+                if new is not None:
+                    el.set(tag, new)
+
+
 def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
     """The group's 2-D textures, materials and meshes, one per name, in a canonical order."""
     seen: dict[tuple[str, str], ET.Element] = {}
     for root in roots:
-        for el in root.find("asset") or []:
-            if el.tag in _UNIONED_ASSETS and el.get("type") != "skybox":
-                seen.setdefault((el.tag, el.get("name", "")), el)
+        for el in _unioned(root):
+            seen.setdefault((el.tag, el.get("name", "")), el)
     order = {tag: i for i, tag in enumerate(_UNIONED_ASSETS)}
     return [copy.deepcopy(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
+
+
+def slotted_bodies(plans: Sequence[Plan], every_object: bool = False
+                   ) -> list[tuple[ET.Element, list[tuple[str, ET.Element]]]]:
+    """Each plan's MJCF with its slot bodies taken out, and those bodies with their slot keys in order, as
+    `pad_group` would see them when padding `plans` together (asset names made unique per content first): what
+    padding them costs, and whether they could share a structure, can be told from these without compiling
+    anything (merge_groups.py)."""
+    roots = [ET.fromstring(p.model_xml) for p in plans]
+    _content_names(roots)
+    out = []
+    for plan, root in zip(plans, roots):
+        world = root.find("worldbody")
+        bodies = _slot_bodies(plan, world, every_object)
+        keys = [slot_key(b, _excludes(root)) for b in bodies]
+        for body in bodies:
+            world.remove(body)
+        out.append((root, list(zip(keys, bodies))))
+    return out
+
+
+def frame_key(root: ET.Element) -> str:
+    """What padding cannot equalise in a plan whose slot bodies are taken out (`slotted_bodies`): every element
+    outside the asset section (lights apart: padding evens their count) by its tag, name, structural attributes and
+    references, with its values (poses, sizes, gains, colours) left out. Plans with different frame keys compile to
+    different structures however they are padded (a geom on another mesh, another joint type); equal keys are a
+    strong hint, not a promise (`bucket.py` still groups by the exact signature), and so is the skybox, left out
+    here: its pixels are a per-environment value where the sizes agree."""
+    parts: list[str] = []
+    for section in root:
+        if section.tag == "asset":
+            continue
+        for el in section.iter():
+            if el.tag != "light":
+                attrs = {k: v for k, v in el.attrib.items() if k in _STRUCTURAL_ATTRS or k in _REFERENCES or k == "name"}
+                parts.append(el.tag + repr(sorted(attrs.items())))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
 
 
 def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> list[PaddedPlan]:
@@ -192,6 +270,7 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> l
     with slots for their clutter; with `every_object`, plans of several tasks on one robot, with slots for every
     object (see the module docstring)."""
     roots = [ET.fromstring(p.model_xml) for p in plans]
+    _content_names(roots)
     excludes = [_excludes(r) for r in roots]
     slotted = [_slot_bodies(p, r.find("worldbody"), every_object) for p, r in zip(plans, roots)]
     keys = [[slot_key(b, ex) for b in bodies] for bodies, ex in zip(slotted, excludes)]
@@ -253,7 +332,7 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> l
         asset = root.find("asset")
         if asset is None:
             asset = ET.SubElement(root, "asset")
-        for el in [e for e in asset if e.tag in _UNIONED_ASSETS and e.get("type") != "skybox"]:
+        for el in _unioned(root):
             asset.remove(el)
         for el in asset.iter("texture"):
             if el.get("type") == "skybox":

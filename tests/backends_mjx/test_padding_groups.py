@@ -1,0 +1,74 @@
+"""Padding a task's plans together: each plan keeps its own geometry, and the union stays bounded (no jit)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import mujoco
+import numpy as np
+from conftest import toy_plan
+
+from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.merge_groups import padding_groups
+from dojo.compiler.plan import Plan
+
+TETRAHEDRON = np.asarray([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.04
+
+
+def mesh_plan(seed: int, scales: tuple[float, ...], block: str = "box") -> Plan:
+    """A random-setting toy plan whose clutter are tetrahedron meshes of the given scales, each mesh named after
+    its geom as the compiler names them (`clutter_<k>/g0`): one name, other vertices, in another plan."""
+    base = toy_plan(setting="random", seed=seed)
+    assets = "".join(f'<mesh name="clutter_{k}/g0" vertex="{" ".join(map(str, (TETRAHEDRON * s).ravel()))}"/>'
+                     for k, s in enumerate(scales))
+    bodies = "".join(f'<body name="clutter_{k}" pos="{-0.3 + 0.15 * k} 0.3 0.05"><joint name="clutter_{k}/free" '
+                     f'type="free"/><geom name="clutter_{k}/g0" type="mesh" mesh="clutter_{k}/g0" mass="0.05"/>'
+                     f'</body>' for k in range(len(scales)))
+    xml = base.model_xml.replace("<worldbody>", f"<asset>{assets}</asset><worldbody>", 1)
+    xml = xml.replace("</worldbody>", bodies + "</worldbody>", 1)
+    if block != "box":
+        xml = xml.replace('name="block/g0" type="box"', f'name="block/g0" type="{block}"', 1)
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    objects = {**base.objects, **{f"clutter_{k}": {"body": f"clutter_{k}", "clutter": True} for k in range(len(scales))}}
+    return dataclasses.replace(base, hash=f"mesh-{seed}-{block}", model_xml=xml, objects=objects,
+                               init_qpos=[float(x) for x in data.qpos], init_qvel=[0.0] * model.nv)
+
+
+def vertices(model: mujoco.MjModel, geom: int) -> np.ndarray:
+    mesh = model.geom_dataid[geom]
+    return model.mesh_vert[model.mesh_vertadr[mesh]:model.mesh_vertadr[mesh] + model.mesh_vertnum[mesh]]
+
+
+def test_plans_padded_together_keep_their_own_meshes_under_one_name():
+    plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.5,))]
+    [bucket] = make_buckets(plans)
+    slots = [bucket.model.body(i).name for i in range(bucket.model.nbody) if bucket.model.body(i).name.startswith("slot")]
+    assert len(slots) == 2  # two geometries, two slot keys, although both meshes were called clutter_0/g0
+    for member in bucket.members:
+        own = member.plan.model()
+        padded = {old: new for new, old in member.padded.names.items() if new.endswith("/geom0")}
+        geom = member.model.geom(padded["clutter_0/g0"]).id
+        np.testing.assert_allclose(vertices(member.model, geom), vertices(own, own.geom("clutter_0/g0").id))
+
+
+def test_padding_groups_keep_each_bucket_within_the_growth_bound():
+    plans = [mesh_plan(seed, tuple(1.0 + 0.1 * seed + 0.01 * k for k in range(3))) for seed in range(4)]
+    own = {p.hash: p.model() for p in plans}
+    assert len(padding_groups(plans, math.inf)) == 1  # unbounded: one union of every plan's clutter
+    groups = padding_groups(plans, 0.5)
+    assert len(groups) == 4 and sorted(p.hash for g in groups for p in g) == sorted(p.hash for p in plans)
+    for bucket in make_buckets(plans):
+        largest = max(own[m.plan.hash].nv for m in bucket.members)
+        assert bucket.model.nv <= 1.5 * largest
+    # a plan with little clutter fits beside a larger one: its union costs at most half the larger plan again
+    small = mesh_plan(9, (2.0,))
+    assert [len(g) for g in padding_groups([plans[0], small], 0.5)] == [2]
+
+
+def test_plans_whose_frames_differ_are_never_padded_together():
+    plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.0,), block="sphere")]
+    assert len(padding_groups(plans, math.inf)) == 2
+    assert len(make_buckets(plans)) == 2
