@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -243,7 +244,8 @@ class MjxBackend(Backend):
         default, so one process uses every GPU of its host.
         `merge`: buckets merged across tasks (`make_buckets(merge=True)`): tasks of one robot share a structure
         where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
-        (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`).
+        (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`). The
+        same bound holds where one task's plans are padded together (`merge_groups.padding_groups`), merged or not.
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
         None: MJX's own default).
         `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
@@ -287,8 +289,13 @@ class MjxBackend(Backend):
         self.preload(plans)
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
+        start = time.perf_counter()
         self._buckets = make_buckets(list(self._known.values()), merge=self.merge,
                                      growth=self.merge_growth)
+        # Set-up can take minutes (a compile per bucket structure): say where it stands before each long step.
+        log.info("mjx backend: %d plan(s) in %d bucket(s), largest nv %d (%.1f s); building the engine",
+                 len(self._known), len(self._buckets), max(b.model.nv for b in self._buckets),
+                 time.perf_counter() - start)
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
@@ -311,13 +318,18 @@ class MjxBackend(Backend):
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
+        start = time.perf_counter()
         self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
                               placement=self.placement, graph_mode=self.graph_mode)
         if self.render_config is not None:
             self._renderers = [BucketCameras(arr, self.render_config) if self.impl == "warp" else
                                CpuRenderer([m.model for m in arr.bucket.members], self.render_config)
                                for arr in self._engine.arrays]
+        log.info("mjx backend: engine built (%.1f s); first tick (compiles on a cold cache)",
+                 time.perf_counter() - start)
+        start = time.perf_counter()
         self.reset()
+        log.info("mjx backend: first tick done (%.1f s)", time.perf_counter() - start)
 
     def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
         if plan.hash not in self._member:
