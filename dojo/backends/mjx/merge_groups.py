@@ -72,7 +72,6 @@ class Unit:
         in_slots = _total(slots, per_slot)
         return cls(key, tuple(plans), own, Cost(own.nv - in_slots.nv, own.ngeom - in_slots.ngeom), slots, per_slot)
 
-
     @classmethod
     def of_plan(cls, plan: Plan, frame: ET.Element, slotted: Sequence[tuple[str, ET.Element]]) -> Unit:
         """A unit of one plan, counted from its MJCF (`pad.slotted_bodies`: the model without its slot bodies, and

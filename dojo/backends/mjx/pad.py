@@ -75,6 +75,8 @@ _REFERENCES = {"body": "body", "body1": "body", "body2": "body", "joint": "joint
                "joint2": "joint", "site": "site", "site1": "site", "site2": "site", "geom": "geom", "geom1": "geom",
                "geom2": "geom"}
 """Attributes outside the worldbody that name an element, and the element's tag (renamed with the slot bodies)."""
+_KEYED_ATTRS = frozenset(_STRUCTURAL_ATTRS) | set(_REFERENCES) | {"name"}
+"""What `frame_key` keeps of an element: its structure, what it refers to, and its name (names are static too)."""
 
 
 def _slot_bodies(plan: Plan, world: ET.Element, every_object: bool) -> list[ET.Element]:
@@ -260,8 +262,8 @@ def frame_key(root: ET.Element) -> str:
             continue
         for el in section.iter():
             if el.tag != "light":
-                attrs = {k: v for k, v in el.attrib.items() if k in _STRUCTURAL_ATTRS or k in _REFERENCES or k == "name"}
-                parts.append(el.tag + repr(sorted(attrs.items())))
+                kept = {k: v for k, v in el.attrib.items() if k in _KEYED_ATTRS}
+                parts.append(el.tag + repr(sorted(kept.items())))
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
 
 
