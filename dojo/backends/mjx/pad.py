@@ -230,9 +230,8 @@ def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
     return [copy.deepcopy(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
 
 
-def slotted_bodies(plans: Sequence[Plan], every_object: bool = False
-                   ) -> list[tuple[ET.Element, list[tuple[str, ET.Element]]]]:
-    """Each plan's MJCF with its slot bodies taken out, and those bodies with their slot keys in order, as
+def slotted_bodies(plans: Sequence[Plan]) -> list[tuple[ET.Element, list[tuple[str, ET.Element]]]]:
+    """Each plan's MJCF with its clutter bodies taken out, and those bodies with their slot keys in order, as
     `pad_group` would see them when padding `plans` together (asset names made unique per content first): what
     padding them costs, and whether they could share a structure, can be told from these without compiling
     anything (merge_groups.py)."""
@@ -241,7 +240,7 @@ def slotted_bodies(plans: Sequence[Plan], every_object: bool = False
     out = []
     for plan, root in zip(plans, roots):
         world = root.find("worldbody")
-        bodies = _slot_bodies(plan, world, every_object)
+        bodies = _slot_bodies(plan, world, every_object=False)
         keys = [slot_key(b, _excludes(root)) for b in bodies]
         for body in bodies:
             world.remove(body)
