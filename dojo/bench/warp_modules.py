@@ -3,9 +3,9 @@
 Why. On an empty Warp kernel cache an engine compiles every module its buckets' steps launch, one after another:
 the 24 simulation tasks' 29 buckets compiled 97 modules in 140-191 s on H100 machines and 128 s on an H200
 (2026-11-28), and compiling or loading them on threads or in worker processes made that longer (README, speed).
-The lever left is needing fewer modules. MuJoCo Warp
-generates kernels per model (its DoF count's solver kernels, its collision pairs, its constraint row count), so the
-number of distinct modules is a property of the buckets' models, and that can be counted without a GPU.
+The lever left is needing fewer modules. MuJoCo Warp generates kernels per model (its DoF count's solver kernels,
+its collision pairs, its constraint row count), so the number of distinct modules is a property of the buckets'
+models, and that can be counted without a GPU.
 
 How. One MuJoCo Warp step of one world of each bucket's model runs on Warp's CPU device with the launches recorded
 instead of executed (`warp_launches`): nothing is compiled and nothing is simulated, seconds for the whole mix.
@@ -44,7 +44,7 @@ def _module_name(module: Any) -> str:
 def bucket_modules(bucket: Bucket) -> set[str]:
     """The Warp modules one step of `bucket`'s model launches (`warp_launches`, on Warp's CPU device: any machine),
     by name; a module launched with several block sizes counts once."""
-    return {_module_name(module) for module, _ in recorded_launches(bucket, "cpu").values()}
+    return {_module_name(module) for module in recorded_launches(bucket, "cpu").values()}
 
 
 def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:

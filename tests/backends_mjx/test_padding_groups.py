@@ -32,7 +32,8 @@ def mesh_plan(seed: int, scales: tuple[float, ...], block: str = "box") -> Plan:
     model = mujoco.MjModel.from_xml_string(xml)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    objects = {**base.objects, **{f"clutter_{k}": {"body": f"clutter_{k}", "clutter": True} for k in range(len(scales))}}
+    clutter = {f"clutter_{k}": {"body": f"clutter_{k}", "clutter": True} for k in range(len(scales))}
+    objects = {**base.objects, **clutter}
     return dataclasses.replace(base, hash=f"mesh-{seed}-{block}", model_xml=xml, objects=objects,
                                init_qpos=[float(x) for x in data.qpos], init_qvel=[0.0] * model.nv)
 
@@ -45,7 +46,8 @@ def vertices(model: mujoco.MjModel, geom: int) -> np.ndarray:
 def test_plans_padded_together_keep_their_own_meshes_under_one_name():
     plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.5,))]
     [bucket] = make_buckets(plans)
-    slots = [bucket.model.body(i).name for i in range(bucket.model.nbody) if bucket.model.body(i).name.startswith("slot")]
+    names = [bucket.model.body(i).name for i in range(bucket.model.nbody)]
+    slots = [name for name in names if name.startswith("slot")]
     assert len(slots) == 2  # two geometries, two slot keys, although both meshes were called clutter_0/g0
     for member in bucket.members:
         own = member.plan.model()

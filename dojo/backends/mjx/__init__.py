@@ -37,7 +37,8 @@ def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
     `merge_growth` (how much larger than its largest plan a padded or merged model may be; null:
-    `merge_groups.GROWTH`) and `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null: MJX's own default).
+    `merge_groups.GROWTH`) and `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
+    MJX's own default).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     from pathlib import Path

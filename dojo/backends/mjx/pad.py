@@ -240,8 +240,8 @@ def slotted_bodies(plans: Sequence[Plan]) -> list[tuple[ET.Element, list[tuple[s
     out = []
     for plan, root in zip(plans, roots):
         world = root.find("worldbody")
-        bodies = _slot_bodies(plan, world, every_object=False)
-        keys = [slot_key(b, _excludes(root)) for b in bodies]
+        bodies, excludes = _slot_bodies(plan, world, every_object=False), _excludes(root)
+        keys = [slot_key(b, excludes) for b in bodies]
         for body in bodies:
             world.remove(body)
         out.append((root, list(zip(keys, bodies))))

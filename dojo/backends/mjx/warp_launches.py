@@ -2,8 +2,8 @@
 
 Why. On an empty kernel cache an engine compiles every Warp module its buckets' steps launch, one module after
 another, at the launch that first needs it. Which modules those are (and with which block size, which selects the
-compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs: `dojo bench kernels` counts them
-this way, to judge how many modules a change of the buckets' structures saves.
+compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs:
+`dojo bench kernels` counts them this way, to judge how many modules a change of the buckets' structures saves.
 
 How. One world of the bucket steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
 block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch) and
@@ -26,8 +26,8 @@ import numpy as np
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
 
-Launches = dict[tuple[str, Any], tuple[Any, Any]]
-"""{(module name, block size): (Warp module, block size)}; block size None is the launch's default."""
+Launches = dict[tuple[str, Any], Any]
+"""{(module name, block size): Warp module}; block size None is the launch's default."""
 
 
 def _empty(dim: Any) -> bool:
@@ -41,8 +41,7 @@ def _recording(wp: Any, launches: Launches) -> ExitStack:
 
     def launch(kernel: Any, *args: Any, **kwargs: Any) -> None:
         if not _empty(kwargs.get("dim", args[0] if args else None)):
-            block = kwargs.get("block_dim")
-            launches[kernel.module.name, block] = (kernel.module, block)
+            launches[kernel.module.name, kwargs.get("block_dim")] = kernel.module
 
     def capture_while(condition: Any, while_body: Callable[..., None], **kwargs: Any) -> None:
         while_body(**kwargs)
