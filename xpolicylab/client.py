@@ -10,7 +10,7 @@
   A reply that cannot be used (not a frame, or a malformed field: see ``conformance``) fails its request at
   once with the field and the reason; one whose ``message_id`` cannot be read fails every pending request.
   Servers that do not advertise ``capabilities.batch_infer`` (upstream XPolicyLab's) get one ``infer`` per
-  environment.
+  environment; a batch larger than a frame may be (``capabilities.max_frame_bytes``) goes as several requests.
   openpi dialect: lock-step ``infer`` only; ``reset``/``prepare_case``/``trial_end`` have no openpi
   counterpart and are local no-ops.
 """
@@ -341,14 +341,28 @@ class AsyncPolicyClient:
         """Many environments in one request, ``float32[B, K, D]`` out (looped for servers without batching)."""
         if len(obs_list) != len(env_ids):
             raise ValueError("obs_list and env_ids must have the same length")
-        request = {"observations": list(obs_list), "env_ids": list(env_ids)}
         if not self.batches:
             return np.stack([await self.infer(o, step) for o in obs_list])
         if self.protocol == "openpi":
-            reply = await self._timed(self._openpi_infer(request))
-        else:
-            reply = (await self._timed(self._request(MessageType.INFER, request, step=step))).payload
-        return np.asarray(reply["actions"])
+            request = {"observations": list(obs_list), "env_ids": list(env_ids)}
+            return np.asarray((await self._timed(self._openpi_infer(request)))["actions"])
+        spans = batch_spans([observation_bytes(o) for o in obs_list], self.frame_budget())
+        replies = await self._timed(asyncio.gather(*(
+            self._request(MessageType.INFER, {"observations": list(obs_list[a:b]), "env_ids": list(env_ids[a:b])},
+                          step=step) for a, b in spans)))
+        return np.concatenate([np.asarray(r.payload["actions"]) for r in replies])
+
+    def frame_budget(self) -> int:
+        """Bytes of observations one request may carry: the smaller of our limit and the one the server advertises
+        (``capabilities.max_frame_bytes``), less 1/16 for the frame's own fields. A batch over it travels as
+        several requests, sent together (their replies are matched by ``message_id``): one 640x480 batch of 256
+        environments with three cameras is 708 MB, over the default 512 MiB, and the server would close the
+        connection with 1009 instead."""
+        limit = self.max_size
+        advertised = (self.server_info.get("capabilities") or {}).get("max_frame_bytes")
+        if isinstance(advertised, int) and advertised > 0:
+            limit = min(limit, advertised)
+        return limit - limit // 16
 
     @property
     def batches(self) -> bool:
@@ -370,6 +384,39 @@ class AsyncPolicyClient:
         start = time.perf_counter()
         await self._request(MessageType.HEARTBEAT, {})
         return (time.perf_counter() - start) * 1e3
+
+
+def observation_bytes(value: Any) -> int:
+    """About how many bytes ``value`` takes on the wire: its arrays' and strings' payloads (the msgpack framing
+    around them is a few bytes each, covered by the budget's margin)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, (bytes, bytearray, memoryview, str)):
+        return len(value)
+    if isinstance(value, dict):
+        return sum(observation_bytes(k) + observation_bytes(v) for k, v in value.items())
+    if isinstance(value, (list, tuple)):
+        return sum(observation_bytes(v) for v in value)
+    return 8
+
+
+def batch_spans(sizes: Sequence[int], budget: int) -> list[tuple[int, int]]:
+    """Split environments of ``sizes`` bytes into consecutive ``(start, stop)`` runs of at most ``budget`` bytes.
+
+    One observation over the budget alone cannot be sent: that is refused here, with both sizes, rather than by
+    the server closing the connection."""
+    spans: list[tuple[int, int]] = []
+    start, total = 0, 0
+    for i, size in enumerate(sizes):
+        if size > budget:
+            raise ProtocolError(ErrorCode.INVALID_FRAME, f"one observation is {size / (1 << 20):.1f} MiB, over the "
+                                f"{budget / (1 << 20):.1f} MiB a request may carry (max_frame_mb of client and server)")
+        if total + size > budget and i > start:
+            spans.append((start, i))
+            start, total = i, 0
+        total += size
+    spans.append((start, len(sizes)))
+    return spans
 
 
 def _code(value: Any) -> ErrorCode:
@@ -421,6 +468,9 @@ class PolicyClient:
     @property
     def batches(self) -> bool:
         return self._client.batches
+
+    def frame_budget(self) -> int:
+        return self._client.frame_budget()
 
     def connect(self) -> PolicyMetadata:
         return self._run(self._client.connect())

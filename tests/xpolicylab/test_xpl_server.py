@@ -15,7 +15,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from xpolicylab import codec
-from xpolicylab.client import AsyncPolicyClient, AuthError, PolicyClient
+from xpolicylab.client import AsyncPolicyClient, AuthError, PolicyClient, batch_spans, observation_bytes
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, PolicyMetadata
 from xpolicylab.policies import ZeroPolicy
@@ -113,6 +113,28 @@ def test_batched_infer_is_one_model_call():
     for obs, chunk in zip(obs_list, actions, strict=True):
         assert np.array_equal(chunk[0], obs["state"]["joint_pos"])
     assert model.calls.count("batch:8") == 1
+
+
+def test_batch_over_the_frame_limit_travels_as_several_requests_in_order():
+    model = Recorder()
+    with serving(model, max_frame_mb=0.1) as srv, PolicyClient(srv.url) as client:  # about 3 observations a frame
+        obs_list = [small_obs(seed=i) for i in range(8)]
+        assert observation_bytes(obs_list[0]) * 8 > srv.server.config.max_frame_mb * (1 << 20)
+        actions = client.infer_batch(obs_list, [f"env{i}" for i in range(8)])
+        for obs, chunk in zip(obs_list, actions, strict=True):  # every environment gets its own action, in order
+            assert np.array_equal(chunk[0], obs["state"]["joint_pos"])
+        batches = sorted(c for c in model.calls if c.startswith("batch:"))
+        assert client.infer(small_obs()).shape == (2, 14)  # the connection was never closed for size
+        spans = batch_spans([observation_bytes(o) for o in obs_list], client.frame_budget())
+    assert len(spans) > 1 and batches == sorted(f"batch:{b - a}" for a, b in spans)
+
+
+def test_batch_spans_keep_each_request_within_budget():
+    assert batch_spans([4, 4, 4, 4, 4], 8) == [(0, 2), (2, 4), (4, 5)]
+    assert batch_spans([3, 6, 1, 8], 8) == [(0, 1), (1, 3), (3, 4)]
+    assert batch_spans([], 8) == [(0, 0)]
+    with pytest.raises(ProtocolError, match="over the"):
+        batch_spans([4, 9], 8)
 
 
 def test_batch_default_loops_single_methods():
