@@ -20,8 +20,9 @@ fi
 # The real extra (piper-sdk, python-can; small, pure Python) so that the robot emulator and its tests run here too;
 # the ray and sweep extras so that the launcher of several processes or machines (dojo run launcher=ray) and
 # parallel sweeps (dojo run -m hydra/launcher=joblib) and their tests do; the console extra (FastAPI, Playwright's
-# Python package, which drives the chromium installed above: no browser is downloaded) for the operator console.
-"$PY" -m pip install --quiet -e ".[dev,real,ray,sweep,console]"
+# Python package, which drives the chromium installed above: no browser is downloaded) for the operator console;
+# the warp extra (warp-lang) so that MuJoCo Warp's engine and ray tracer are tested here on Warp's CPU device.
+"$PY" -m pip install --quiet -e ".[dev,real,ray,sweep,console,warp]"
 # openpi-client pins numpy<2 although its websocket client runs on numpy 2: install it without its pins, and last,
 # so that the protocol tests can talk to the real package. pip checks what is already installed against the
 # requirements of every later install (printing a red "ERROR: ... requires numpy<2.0.0" for it), and skips that

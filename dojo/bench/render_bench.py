@@ -390,7 +390,7 @@ def bench_render(cfg: Any) -> dict[str, Any]:
     report: dict[str, Any] = {"what": "render", "machine": machine(), "tasks": sorted({p.task for p in plans}),
                               "plans": len(plans), "num_envs": num_envs, "steps": steps}
     ok, why = warp_renderer_available()
-    if ok and impl != "jax":
+    if impl == "warp" or (ok and impl != "jax"):  # warp asked for without a GPU: Warp's CPU device
         report["batched"] = measure_batched(plans, num_envs, steps, grid, physics=bool(_get(cfg, "physics", True)))
     else:
         report["batched"] = {"available": False, "reason": why if not ok else "backend.impl=jax"}

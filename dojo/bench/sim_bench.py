@@ -289,7 +289,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
     from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
-    from dojo.backends.mjx.cache import choose_impl, describe_impl, enable_compilation_cache, graph_mode
+    from dojo.backends.mjx.cache import (choose_impl, describe_impl, enable_compilation_cache, graph_mode,
+                                         graph_mode_name)
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.backends.mjx.sharding import Placement, local_devices
 
@@ -321,7 +322,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "buckets": len(buckets),
         "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
-        "graph_mode": backend.get("graph_mode") if graphs is not None else None,
+        "graph_mode": graph_mode_name(graphs),
         "dof_quantum": quantum, "bucket_nv": [int(b.model.nv) for b in buckets],
     }
     out["devices"] = widest.count

@@ -55,11 +55,14 @@ def _jax() -> str:
 
 
 def _warp() -> str:
-    from dojo.backends.mjx.cache import warp_available
+    from dojo.backends.mjx.cache import warp_available, warp_installed
 
     if warp_available():
         return "available (backend=mjx runs it: impl=auto)"
-    return "not available (needs an NVIDIA GPU and mujoco-warp; backend=mjx runs MJX's jax implementation)"
+    if warp_installed():
+        return ("on Warp's CPU device only, when asked for (backend.impl=warp: for checks); impl=auto runs MJX's jax "
+                "implementation without an NVIDIA GPU")
+    return "not available (needs warp-lang, pip install 'robodojo[warp]'; backend=mjx runs MJX's jax implementation)"
 
 
 def _render() -> str:

@@ -20,6 +20,15 @@ def test_ssim_and_mae_separate_same_from_different():
     assert P.rgb_mae(a, other) > 50
 
 
+def test_psnr_is_infinite_like_for_equal_images_and_falls_with_noise():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, size=(40, 50, 3), dtype=np.uint8)
+    assert P.psnr(a, a) == 99.0
+    off_by_one = (a.astype(int) ^ 1).astype(np.uint8)  # every channel off by exactly 1: MSE 1, 48.13 dB
+    assert abs(P.psnr(a, off_by_one) - 20 * np.log10(255)) < 1e-9
+    assert P.psnr(a, rng.integers(0, 256, size=a.shape, dtype=np.uint8)) < 10
+
+
 def test_depth_stats_only_count_pixels_both_hit():
     a = np.array([[1000, 0, 2000, 3000]], np.uint16)
     b = np.array([[1001, 500, 0, 3050]], np.uint16)
@@ -54,7 +63,10 @@ def test_mujoco_reference_images_and_saved_batched_round_trip(standard_plan, tmp
     rows = P.compare_plan(standard_plan, rgb, depth, 32, 24, tmp_path)
     assert len(rows) == 2 * len(CAMERAS) and not any(r["misses"] for r in rows)
     assert (tmp_path / f"{P.plan_label(standard_plan)}.png").exists()
-    assert P.summarize(rows, 1, 32, 24)["failed"] == 0
+    summary = P.summarize(rows, 1, 32, 24)
+    assert summary["failed"] == 0 and summary["mean_psnr_db"] == 99.0
+    assert summary["by_task_setting"] == {standard_plan.task: {standard_plan.setting: {
+        "psnr_db": 99.0, "ssim": 1.0, "rgb_mae": 0.0, "images": 2 * len(CAMERAS)}}}
 
 
 def test_bench_grid_and_split():

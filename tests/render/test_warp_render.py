@@ -1,21 +1,21 @@
-"""The batched renderer on an NVIDIA GPU (`pytest -m gpu`): images per environment and camera, per-environment
-colours, cameras that move with the arms. Parity with MuJoCo at full size: `python -m dojo.backends.mjx.render_parity`.
+"""The batched renderer (MuJoCo Warp's ray tracer): images per environment and camera, per-environment colours,
+cameras that move with the arms. It runs wherever warp-lang is installed: on an NVIDIA GPU, or on Warp's CPU device
+(`./setup.sh` installs it, so CI runs these on the CPU). Parity with MuJoCo at full size, per task and setting:
+`python -m dojo.backends.mjx.render_parity`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from dojo.backends.mjx.render import CAMERAS, RenderConfig, warp_renderer_available
-
-pytestmark = pytest.mark.gpu
+from dojo.backends.mjx.cache import warp_installed
+from dojo.backends.mjx.render import CAMERAS, RenderConfig
 
 
 @pytest.fixture(scope="module")
 def warp_ready():
-    ok, why = warp_renderer_available()
-    if not ok:
-        pytest.skip(why)
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
 
 
 def test_batched_images_follow_state_and_per_env_colours(warp_ready, standard_plan):

@@ -49,7 +49,8 @@ from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
-from dojo.backends.mjx.cache import DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache
+from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache,
+                                     graph_mode_name)
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
@@ -262,7 +263,7 @@ class MjxBackend(Backend):
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
         log.info("mjx backend: %s%s", describe_impl(self.impl),
-                 f", CUDA graphs: {graph_mode}" if self.graph_mode is not None else "")
+                 f", CUDA graphs: {graph_mode_name(self.graph_mode)}" if self.graph_mode is not None else "")
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
         self._engine: Engine | None = None

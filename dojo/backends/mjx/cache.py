@@ -2,8 +2,9 @@
 
 Compiling one tick of a real scene takes minutes on a CPU and tens of seconds on a GPU; the persistent cache
 turns every later run with the same buckets (same structures, batch sizes and JAX/MJX versions) into a cache
-hit. MJX has two implementations: `jax` (XLA, runs everywhere) and `warp` (MuJoCo Warp kernels, NVIDIA GPUs
-only, several times faster at large batches, see /work/shared/gpu/README.md).
+hit. MJX has two implementations: `jax` (XLA, runs everywhere) and `warp` (MuJoCo Warp kernels, built for NVIDIA
+GPUs and several times faster there at large batches, see /work/shared/gpu/README.md; on request also on Warp's
+CPU device).
 """
 
 from __future__ import annotations
@@ -40,27 +41,35 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path:
     return path
 
 
-def warp_available() -> bool:
-    """MuJoCo Warp is importable and JAX sees an NVIDIA GPU."""
+def warp_installed() -> bool:
+    """MuJoCo Warp can run here: MJX finds the warp-lang package (on an NVIDIA GPU, or on Warp's CPU device)."""
     try:
         from mujoco.mjx.warp import WARP_INSTALLED
     except ImportError:
         return False
-    return bool(WARP_INSTALLED) and any(d.platform == "gpu" for d in jax.devices())
+    return bool(WARP_INSTALLED)
+
+
+def warp_available() -> bool:
+    """MuJoCo Warp is importable and JAX sees an NVIDIA GPU: where `impl=auto` chooses it."""
+    return warp_installed() and any(d.platform == "gpu" for d in jax.devices())
 
 
 def choose_impl(requested: str | None = None) -> str:
     """`requested` if given (checked), else `warp` on an NVIDIA GPU with MuJoCo Warp installed, else `jax`.
 
-    Choosing `warp` also quiets Warp's per-module "load on device ... took" lines, which it prints to stdout by
+    `warp` asked for on a machine without an NVIDIA GPU runs MuJoCo Warp's kernels on Warp's CPU device: the same
+    engine, cameras and contact pool as on the GPU, so that their code paths (and render parity with MuJoCo) can be
+    checked on any machine; `auto` never picks it there. Choosing `warp` also quiets Warp's per-module "load on device ... took" lines, which it prints to stdout by
     default: `dojo bench` prints exactly one JSON line there (our own log says how long compilation took).
     """
     if requested in (None, "", "auto"):
         chosen = "warp" if warp_available() else "jax"
     elif requested not in IMPLS:
         raise ValueError(f"unknown MJX impl {requested!r}; choose one of {IMPLS} or 'auto'")
-    elif requested == "warp" and not warp_available():
-        raise RuntimeError("impl 'warp' needs an NVIDIA GPU visible to JAX and the mujoco-warp package")
+    elif requested == "warp" and not warp_installed():
+        raise RuntimeError("impl 'warp' needs the warp-lang package (pip install 'robodojo[warp]'), which runs "
+                           "MuJoCo Warp on an NVIDIA GPU or, slowly, on the CPU")
     else:
         chosen = requested
     if chosen == "warp":
@@ -70,16 +79,24 @@ def choose_impl(requested: str | None = None) -> str:
 
 def graph_mode(name: str | None, impl: str) -> object | None:
     """`backend.graph_mode` as the `GraphMode` MJX's `put_model` takes: None for MJX's default, and under `impl`
-    `jax` (no Warp calls to capture). The name is checked first, so that a typo fails on any machine."""
-    if name in (None, ""):
-        return None
-    if str(name).lower() not in GRAPH_MODES:
+    `jax` (no Warp calls to capture); `none` on Warp's CPU device, whatever was asked (no CUDA there). The name is
+    checked first, so that a typo fails on any machine."""
+    if name not in (None, "") and str(name).lower() not in GRAPH_MODES:
         raise ValueError(f"unknown backend.graph_mode {name!r}; choose one of {GRAPH_MODES} or null (MJX's default)")
     if impl != "warp":
         return None
     import warp as wp
 
+    if jax.default_backend() == "cpu":  # Warp's CPU device: JAX's CPU FFI takes no graph mode but `none`
+        return wp.JaxCallableGraphMode.NONE
+    if name in (None, ""):
+        return None
     return getattr(wp.JaxCallableGraphMode, str(name).upper())
+
+
+def graph_mode_name(mode: object | None) -> str | None:
+    """The `backend.graph_mode` name of a `graph_mode` result, for logs (None: MJX's default)."""
+    return None if mode is None else str(getattr(mode, "name", mode)).lower()
 
 
 def quiet_warp() -> None:
@@ -92,5 +109,7 @@ def quiet_warp() -> None:
 def describe_impl(impl: str) -> str:
     """One line naming the implementation and the device it runs on, for logs and reports."""
     device = jax.devices()[0]
+    if impl == "warp" and device.platform == "cpu":
+        return "impl=warp (MuJoCo Warp kernels on Warp's CPU device: for checks, far slower than on a GPU)"
     engine = "MuJoCo Warp kernels" if impl == "warp" else "XLA"
     return f"impl={impl} ({engine} on {device.platform} {device.device_kind})"

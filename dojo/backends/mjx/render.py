@@ -10,7 +10,7 @@ camera of one environment per call (its scene is rebuilt on the host from MjData
 640x480 per core on the CI machine, hundreds of times below the batched tracer; a ray caster written in JAX
 (`mjx.ray` vmapped over pixels) computes depth only, no shading, and is bounded by per-ray geom loops that XLA
 cannot prune with a BVH. Without an NVIDIA GPU or warp, `CpuRenderer` renders the same batch with MuJoCo's renderer
-(`make_renderer` picks it and says why).
+(`make_renderer` picks it and says why); asked for by name, the tracer also runs on Warp's CPU device.
 
 What matches MuJoCo and what does not. Cameras: the plan's intrinsics (fovy, resolution from the config) and
 poses; poses are recomputed here from body poses for fixed cameras (and fixed lights, whose positions may differ
@@ -354,13 +354,18 @@ def make_renderer(models: Sequence[mujoco.MjModel], nworld: int, config: RenderC
                   impl: str = "auto") -> WarpRenderer | CpuRenderer:
     """The batched renderer for a bucket when it can run here (impl `auto` or `warp`), else the CPU fallback.
 
-    `models` are the bucket's member models, the first being the reference; `impl="warp"` without a GPU raises
-    instead of falling back, so that a run which asked for the GPU never silently measures the CPU.
+    `models` are the bucket's member models, the first being the reference. `impl="warp"` never falls back: without
+    warp-lang it raises, so that a run which asked for the batched renderer never silently measures MuJoCo's, and
+    without a GPU it renders on Warp's CPU device (the same ray tracer, for checks).
     """
+    if impl == "warp":
+        from mujoco.mjx import warp as mjx_warp
+
+        if not mjx_warp.WARP_INSTALLED:
+            raise RuntimeError("the warp renderer was asked for but cannot run: warp-lang is not installed")
+        return WarpRenderer(models[0], nworld, config)
     ok, why = warp_renderer_available()
     if impl == "jax" or not ok:
-        if impl == "warp":
-            raise RuntimeError(f"the warp renderer was asked for but cannot run: {why}")
         log.info("rendering on the CPU with MuJoCo's renderer (%s)", why if not ok else "impl=jax")
         return CpuRenderer(models, config)
     return WarpRenderer(models[0], nworld, config)

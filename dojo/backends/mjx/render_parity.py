@@ -47,6 +47,12 @@ def rgb_mae(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(np.abs(a.astype(np.float64) - b.astype(np.float64))))
 
 
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """Peak signal-to-noise ratio of two uint8 images in dB (capped at 99 for identical images)."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 99.0 if mse == 0 else min(99.0, 10.0 * float(np.log10(255.0 ** 2 / mse)))
+
+
 def _box_mean(x: np.ndarray, k: int) -> np.ndarray:
     """Mean over every k x k window (valid positions only), by summed-area table."""
     s = np.pad(np.cumsum(np.cumsum(x, axis=0), axis=1), ((1, 0), (1, 0)))
@@ -205,8 +211,9 @@ def compare_plan(plan: Any, rgb: np.ndarray, depth: np.ndarray, width: int, heig
         plain_rgb, plain_depth = mujoco_images(model, qpos, CAMERAS, width, height, plain=True)
         look_rgb, _ = mujoco_images(model, qpos, CAMERAS, width, height, plain=False)
         for k, cam in enumerate(CAMERAS):
-            row = {"plan": plan_label(plan), "env": ENVS[env], "camera": cam,
-                   "rgb_mae": rgb_mae(plain_rgb[k], rgb[env, k]), "ssim": ssim(plain_rgb[k], rgb[env, k]),
+            row = {"plan": plan_label(plan), "task": plan.task, "setting": plan.setting, "env": ENVS[env],
+                   "camera": cam, "rgb_mae": rgb_mae(plain_rgb[k], rgb[env, k]),
+                   "psnr_db": psnr(plain_rgb[k], rgb[env, k]), "ssim": ssim(plain_rgb[k], rgb[env, k]),
                    "rgb_mae_default_look": rgb_mae(look_rgb[k], rgb[env, k]),
                    "ssim_default_look": ssim(look_rgb[k], rgb[env, k]),
                    "depth": depth_stats(plain_depth[k], depth[env, k])}
@@ -254,8 +261,25 @@ def summarize(rows: list[dict[str, Any]], plans: int, width: int, height: int) -
         "mean_ssim_default_look": float(np.mean([r["ssim_default_look"] for r in rows])),
         "worst_depth_median_mm": max(r["depth"]["median_mm"] for r in rows),
         "worst_depth_within_fraction": min(r["depth"]["within_fraction"] for r in rows),
+        "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows])),
+        "by_task_setting": by_task_setting(rows),
         "rows": rows,
     }
+
+
+def by_task_setting(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
+    """Mean PSNR, SSIM and RGB error per task and setting (over both states and every camera): the figure to read
+    when one task's scene, or its random setting's colours and lights, renders differently."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row["task"], row["setting"]), []).append(row)
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for (task, setting), group in sorted(groups.items()):
+        table.setdefault(task, {})[setting] = {
+            "psnr_db": round(float(np.mean([r["psnr_db"] for r in group])), 2),
+            "ssim": round(float(np.mean([r["ssim"] for r in group])), 4),
+            "rgb_mae": round(float(np.mean([r["rgb_mae"] for r in group])), 2), "images": len(group)}
+    return table
 
 
 def main(argv: Sequence[str] | None = None) -> int:
