@@ -1,7 +1,9 @@
 """``xpolicylab bench`` / ``dojo bench policy``: loopback throughput and round-trip latency of the protocol.
 
 The server runs in a separate process (``python -m xpolicylab.serve``), as in a real evaluation: client and
-server in one process would share one interpreter lock and measure the GIL instead of the protocol.
+server in one process would share one interpreter lock and measure the GIL instead of the protocol. Each of the
+``shared_memory`` modes listed is measured in turn against the same server, so socket and shared memory compare
+in one run; ``mb_per_s`` counts the observations' bytes either way.
 """
 
 from __future__ import annotations
@@ -10,11 +12,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
-from xpolicylab import codec
+from xpolicylab import codec, shm
 from xpolicylab.client import PolicyClient
 from xpolicylab.embodiments import CAMERAS, get_embodiment
 from xpolicylab.observations import synthetic_batch
@@ -34,6 +36,7 @@ class BenchConfig:
     single_n: int = 50
     embodiment: str = "arx_x5_bimanual"
     url: str | None = None
+    shared_memory: tuple[str, ...] = ("auto",)
 
 
 @contextmanager
@@ -61,13 +64,15 @@ def spawned_server(protocol: str, timeout_s: float = 60.0) -> Iterator[str]:
             proc.wait()
 
 
-def _measure(url: str, protocol: str, cfg: BenchConfig) -> dict[str, Any]:
+def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: str) -> dict[str, Any]:
     emb = get_embodiment(cfg.embodiment)
     obs_list = synthetic_batch(emb, cfg.batch, cfg.cameras, cfg.width, cfg.height)
     env_ids = list(range(cfg.batch))
     request_bytes = sum(memoryview(c).nbytes for c in codec.encode_chunks(
         {"observations": obs_list, "env_ids": env_ids}, codec.Dialect(protocol)))
-    with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8) as client:
+    with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8,
+                      shared_memory=shared_memory) as client:
+        used_shared_memory = client.uses_shared_memory
         for _ in range(cfg.warmup):
             client.infer_batch(obs_list, env_ids)
         batch = LatencyStats()
@@ -90,21 +95,24 @@ def _measure(url: str, protocol: str, cfg: BenchConfig) -> dict[str, Any]:
         "single_rtt_ms_p50": round(single.percentile(50), 2),
         "single_rtt_ms_p99": round(single.percentile(99), 2),
         "request_mb": round(request_bytes / 1e6, 2),
+        "shared_memory": used_shared_memory,
     }
 
 
 def run_bench(cfg: BenchConfig) -> dict[str, Any]:
-    """Measure every dialect in ``cfg.protocols``; returns the figures the bench prints as one JSON line."""
+    """Measure every dialect in ``cfg.protocols`` (the native one in every ``cfg.shared_memory`` mode); returns the
+    figures the bench prints as one JSON line, under the dialect's name, or ``<dialect>_shm_<mode>`` when several
+    modes are measured."""
     result: dict[str, Any] = {
         "bench": "xpolicylab_loopback", "policy": "zero", "batch": cfg.batch,
         "images": f"{len(cfg.cameras)}x{cfg.width}x{cfg.height}", "n": cfg.n, "single_n": cfg.single_n,
     }
     for protocol in cfg.protocols:
-        if cfg.url:
-            result[protocol] = _measure(cfg.url, protocol, cfg)
-        else:
-            with spawned_server(protocol) as url:
-                result[protocol] = _measure(url, protocol, cfg)
+        modes = cfg.shared_memory if protocol == "xpolicylab" else ("off",)
+        with nullcontext(cfg.url) if cfg.url else spawned_server(protocol) as url:
+            for mode in modes:
+                key = protocol if len(modes) == 1 else f"{protocol}_shm_{mode}"
+                result[key] = _measure(url, protocol, cfg, mode)
     return result
 
 
@@ -114,3 +122,10 @@ def protocols_arg(values: Sequence[str]) -> tuple[str, ...]:
     if bad or not values:
         raise ValueError(f"protocols must be a subset of [xpolicylab,openpi], got {list(values)}")
     return tuple(values)
+
+
+def shared_memory_arg(values: Sequence[str]) -> tuple[str, ...]:
+    """Validate the ``shared_memory`` option: one or more of auto, on, off."""
+    if not values:
+        raise ValueError(f"shared_memory must list one or more of {', '.join(shm.MODES)}")
+    return tuple(shm.mode(v) for v in values)

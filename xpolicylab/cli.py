@@ -25,6 +25,8 @@ SERVE_OPTIONS = (
     Option("token", "str", None, "bearer token clients must send; defaults to $XPOLICYLAB_TOKEN"),
     Option("max_frame_mb", "float", 512.0, "largest accepted message, MiB; larger ones are closed with 1009"),
     Option("request_timeout_s", "float", 120.0, "longest a model call may take before a timeout error"),
+    Option("shared_memory", "bool", True, "read large arrays from /dev/shm when a client on this host (loopback) "
+           "sends references (native dialect)"),
     Option("embodiment", "str", "arx_x5_bimanual", "robot the reference policies act for"),
     Option("action_mode", "str", "joint", "joint (D=14) or ee (D=16), for the reference policies"),
     Option("chunk_size", "int", 8, "actions per chunk, for the reference policies"),
@@ -70,6 +72,8 @@ BENCH_OPTIONS = (
     Option("single_n", "int", 50, "timed single-observation round trips"),
     Option("embodiment", "str", "arx_x5_bimanual", "robot of the synthetic observations"),
     Option("url", "str", None, "bench this running zero-policy server instead of spawning one per dialect"),
+    Option("shared_memory", "list", ("auto",), "client modes to measure in turn, e.g. [off,on]: auto | on | off "
+           "(large arrays through /dev/shm; xpolicylab dialect, openpi always off)"),
 )
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -132,7 +136,8 @@ def serve_main(args: Sequence[str]) -> int:
     try:
         server_config = ServerConfig(host=opts["host"], port=opts["port"], protocol=opts["protocol"],
                                      token=opts["token"] or os.environ.get("XPOLICYLAB_TOKEN") or None,
-                                     max_frame_mb=opts["max_frame_mb"], request_timeout_s=opts["request_timeout_s"])
+                                     max_frame_mb=opts["max_frame_mb"], request_timeout_s=opts["request_timeout_s"],
+                                     shared_memory=opts["shared_memory"])
         model = load_policy(opts["policy"], config)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
@@ -210,10 +215,11 @@ def bench_main(args: Sequence[str]) -> int:
         print(_help("bench"))
         return 0
     opts, _ = parse(args, BENCH_OPTIONS, "xpolicylab bench")
-    from xpolicylab.bench import BenchConfig, protocols_arg, run_bench
+    from xpolicylab.bench import BenchConfig, protocols_arg, run_bench, shared_memory_arg
 
     try:
         protocols = protocols_arg(opts.pop("protocols"))
+        opts["shared_memory"] = shared_memory_arg(opts["shared_memory"])
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
     opts["cameras"] = tuple(opts["cameras"])

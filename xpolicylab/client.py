@@ -13,13 +13,18 @@
   environment; a batch larger than a frame may be (``capabilities.max_frame_bytes``) goes as several requests.
   openpi dialect: lock-step ``infer`` only; ``reset``/``prepare_case``/``trial_end`` have no openpi
   counterpart and are local no-ops.
+* ``shared_memory`` (``auto``: when the server is on this host and advertises it; ``on``; ``off``): an infer
+  request's large arrays go through ``/dev/shm`` instead of the socket (``xpolicylab.shm``); native dialect only.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import threading
 import time
+import urllib.parse
 import uuid
 from collections.abc import Awaitable, Callable, Hashable, Sequence
 from typing import Any, TypeVar
@@ -28,7 +33,7 @@ import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
-from xpolicylab import codec, transport
+from xpolicylab import codec, shm, transport
 from xpolicylab.conformance import fatal_problem
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Observation, PolicyMetadata
@@ -36,6 +41,7 @@ from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, e
                                  readable_ids)
 from xpolicylab.stats import LatencyStats
 
+logger = logging.getLogger(__name__)
 T = TypeVar("T")
 #: Sees every binary message the server sends, with the request it answers (``None`` when none matched).
 ReplyObserver = Callable[[bytes, "Frame | None"], None]
@@ -62,9 +68,13 @@ class AsyncPolicyClient:
         backoff_max_s: float = 5.0,
         max_frame_mb: float = 512.0,
         observer: ReplyObserver | None = None,
+        shared_memory: str | bool = "auto",
     ) -> None:
         if protocol not in ("xpolicylab", "openpi"):
             raise ValueError(f"protocol must be 'xpolicylab' or 'openpi', got {protocol!r}")
+        self.shared_memory = shm.mode(shared_memory)
+        if protocol == "openpi" and self.shared_memory == "on":
+            raise ValueError("shared_memory=on needs the xpolicylab dialect; openpi servers do not read references")
         self.url = url
         self.protocol = protocol
         self.token = token
@@ -87,6 +97,8 @@ class AsyncPolicyClient:
         self._reconnecting = asyncio.Lock()
         self._case: tuple[str | None, dict[str, Any]] | None = None
         self._trial: dict[str, Any] = {}
+        self._segments: shm.SegmentPool | None = None
+        self._shared = False
 
     async def __aenter__(self) -> AsyncPolicyClient:
         await self.connect()
@@ -137,14 +149,18 @@ class AsyncPolicyClient:
         # Upstream XPolicyLab servers send no metadata: name the policy after the server, keep the defaults.
         declared = {"name": str(ack.payload.get("server", "unknown")), **(ack.payload.get("metadata") or {})}
         self.metadata = PolicyMetadata.from_dict(declared)
+        await self._negotiate_shared_memory()
         if self._case is not None:
             case_id, meta = self._case
             await self._request(MessageType.PREPARE_CASE, meta, action_case_id=case_id, retry=False)
         return self.metadata
 
     async def close(self) -> None:
-        """Say ``close`` (native) and disconnect; pending requests fail."""
+        """Say ``close`` (native) and disconnect; pending requests fail; shared-memory segments are unlinked."""
         ws, self._ws = self._ws, None
+        self._shared = False
+        if self._segments is not None:
+            self._segments.close()
         if ws is not None:
             if self.protocol == "xpolicylab":
                 try:
@@ -157,6 +173,48 @@ class AsyncPolicyClient:
             self._reader.cancel()
             self._reader = None
         self._fail_pending(ConnectionError("client closed"))
+
+    async def _negotiate_shared_memory(self) -> None:
+        """Use shared memory on this connection when the option allows it and it works: the URL's host is loopback,
+        the server advertises it, and a probe (a heartbeat carrying one reference) was read by the server, which
+        a server in a container may fail to do (same loopback, another /dev/shm). With ``on``, anything else is an
+        error now rather than a slow evaluation later."""
+        self._shared = False
+        if self.shared_memory == "off":
+            return
+        problem = self._shared_memory_obstacle() or await self._probe_shared_memory()
+        if problem is None:
+            self._shared = True
+        elif self.shared_memory == "on":
+            await self.close()
+            raise ConnectionError(f"shared_memory=on, but {problem}")
+        else:
+            logger.info("%s: arrays go through the socket, not shared memory: %s", self.url, problem)
+
+    def _shared_memory_obstacle(self) -> str | None:
+        """Why shared memory cannot be used with this server, from what is known without trying."""
+        host = urllib.parse.urlsplit(self.url).hostname
+        if not shm.is_loopback_host(host):
+            return f"the server's host {host!r} is not a loopback address"
+        if (self.server_info.get("capabilities") or {}).get("shared_memory") is not True:
+            return "the server does not advertise capabilities.shared_memory"
+        return None
+
+    async def _probe_shared_memory(self) -> str | None:
+        """Why the server could not read an array through shared memory, or ``None`` when it could."""
+        try:
+            with self._pool().lease({"probe": np.zeros(shm.THRESHOLD, np.uint8)}) as payload:
+                await self._request(MessageType.HEARTBEAT, payload, retry=False)
+        except shm.NoSharedMemory as exc:
+            return str(exc)
+        except ProtocolError as exc:
+            return f"the server could not read a shared-memory probe: {exc.message}"
+        return None
+
+    def _pool(self) -> shm.SegmentPool:
+        if self._segments is None:
+            self._segments = shm.SegmentPool()
+        return self._segments
 
     async def _reconnect(self) -> None:
         """Open a fresh connection unless a concurrent request already did."""
@@ -326,11 +384,36 @@ class AsyncPolicyClient:
             payload["env_ids"] = list(env_ids)
         return (await self._request(MessageType.RESET, payload)).payload
 
+    async def _infer(self, payloads: Callable[[], list[dict[str, Any]]], step: int) -> list[Frame]:
+        """Send the ``infer`` requests ``payloads()`` makes, together, and return their replies in order.
+
+        With shared memory, every request's arrays are placed before any request is sent: when ``/dev/shm`` is
+        full, nothing has reached the model yet, and (``auto``) the requests are made again for the socket and its
+        frame budget; shared memory stays off from then on. With ``on`` the error is raised instead."""
+        try:
+            return await self._send_infers(payloads(), step)
+        except shm.NoSharedMemory as exc:
+            if self.shared_memory == "on":
+                raise
+            logger.warning("%s; arrays go through the socket from now on", exc)
+            self._shared = False
+            return await self._send_infers(payloads(), step)
+
+    async def _send_infers(self, payloads: list[dict[str, Any]], step: int) -> list[Frame]:
+        with contextlib.ExitStack() as leases:
+            wires = [leases.enter_context(self._lease(p)) for p in payloads]
+            return list(await asyncio.gather(*(self._request(MessageType.INFER, w, step=step) for w in wires)))
+
+    def _lease(self, payload: dict[str, Any]) -> contextlib.AbstractContextManager[dict[str, Any]]:
+        """The payload as it goes on the wire: through shared memory when this connection uses it."""
+        return self._pool().lease(payload) if self._shared else contextlib.nullcontext(payload)
+
     async def infer_raw(self, obs: Observation, step: int = 0) -> dict[str, Any]:
         """One observation in, the full reply payload out (``actions``, ``action_mode``, ...)."""
         if self.protocol == "openpi":
             return await self._timed(self._openpi_infer(obs))
-        return (await self._timed(self._request(MessageType.INFER, {"observation": obs}, step=step))).payload
+        (reply,) = await self._timed(self._infer(lambda: [{"observation": obs}], step))
+        return reply.payload
 
     async def infer(self, obs: Observation, step: int = 0) -> np.ndarray:
         """One observation in, one action chunk ``float32[K, D]`` out."""
@@ -346,23 +429,32 @@ class AsyncPolicyClient:
         if self.protocol == "openpi":
             request = {"observations": list(obs_list), "env_ids": list(env_ids)}
             return np.asarray((await self._timed(self._openpi_infer(request)))["actions"])
-        spans = batch_spans([observation_bytes(o) for o in obs_list], self.frame_budget())
-        replies = await self._timed(asyncio.gather(*(
-            self._request(MessageType.INFER, {"observations": list(obs_list[a:b]), "env_ids": list(env_ids[a:b])},
-                          step=step) for a, b in spans)))
+        replies = await self._timed(self._infer(lambda: self._batch_payloads(obs_list, env_ids), step))
         return np.concatenate([np.asarray(r.payload["actions"]) for r in replies])
+
+    def _batch_payloads(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> list[dict[str, Any]]:
+        """One ``infer`` payload per run of environments that fits in a frame (``frame_budget``)."""
+        sizes = [observation_bytes(o, shared=self._shared) for o in obs_list]
+        return [{"observations": list(obs_list[a:b]), "env_ids": list(env_ids[a:b])}
+                for a, b in batch_spans(sizes, self.frame_budget())]
 
     def frame_budget(self) -> int:
         """Bytes of observations one request may carry: the smaller of our limit and the one the server advertises
         (``capabilities.max_frame_bytes``), less 1/16 for the frame's own fields. A batch over it travels as
         several requests, sent together (their replies are matched by ``message_id``): one 640x480 batch of 256
         environments with three cameras is 708 MB, over the default 512 MiB, and the server would close the
-        connection with 1009 instead."""
+        connection with 1009 instead. With shared memory, an observation counts only what still travels through
+        the socket (``observation_bytes(shared=True)``)."""
         limit = self.max_size
         advertised = (self.server_info.get("capabilities") or {}).get("max_frame_bytes")
         if isinstance(advertised, int) and advertised > 0:
             limit = min(limit, advertised)
         return limit - limit // 16
+
+    @property
+    def uses_shared_memory(self) -> bool:
+        """Whether large arrays of infer requests go through shared memory on the current connection."""
+        return self._shared
 
     @property
     def batches(self) -> bool:
@@ -386,17 +478,25 @@ class AsyncPolicyClient:
         return (time.perf_counter() - start) * 1e3
 
 
-def observation_bytes(value: Any) -> int:
+#: The map msgpack-numpy writes around an array's data (keys, dtype, shape), counted with shared memory only: it is
+#: nothing beside images, but about as much as a small array once the images are references.
+ARRAY_FRAMING = 48
+
+
+def observation_bytes(value: Any, shared: bool = False) -> int:
     """About how many bytes ``value`` takes on the wire: its arrays' and strings' payloads (the msgpack framing
-    around them is a few bytes each, covered by the budget's margin)."""
+    around them is a few bytes each, covered by the budget's margin). ``shared``: the large arrays go through
+    shared memory, and the frame holds their references and every array's framing."""
     if isinstance(value, np.ndarray):
-        return value.nbytes
+        if not shared:
+            return value.nbytes
+        return shm.REFERENCE_BYTES if shm.travels_shared(value) else value.nbytes + ARRAY_FRAMING
     if isinstance(value, (bytes, bytearray, memoryview, str)):
         return len(value)
     if isinstance(value, dict):
-        return sum(observation_bytes(k) + observation_bytes(v) for k, v in value.items())
+        return sum(observation_bytes(k) + observation_bytes(v, shared) for k, v in value.items())
     if isinstance(value, (list, tuple)):
-        return sum(observation_bytes(v) for v in value)
+        return sum(observation_bytes(v, shared) for v in value)
     return 8
 
 
@@ -468,6 +568,10 @@ class PolicyClient:
     @property
     def batches(self) -> bool:
         return self._client.batches
+
+    @property
+    def uses_shared_memory(self) -> bool:
+        return self._client.uses_shared_memory
 
     def frame_budget(self) -> int:
         return self._client.frame_budget()

@@ -17,6 +17,10 @@ returns a list of chunks in which large array buffers are zero-copy ``memoryview
 them as WebSocket fragments, one per array; decoding walks the received fragments and returns a view of each
 array where it arrived in one fragment (no copy), else copies it once into a recycled buffer. The bytes on the
 wire are exactly what ``msgpack`` would write.
+
+A third map, ``{b"xpl_shm": True, b"segment": name, b"offset": n, b"type": dtype.str, b"shape": [...]}``, stands
+for an array that a client on the server's host placed in shared memory (``SharedArray``, see ``xpolicylab.shm``);
+only a decoder asked for it (``shared_refs=True``) accepts one, and nothing else writes one.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import struct
 import sys
 import threading
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import msgpack
@@ -56,6 +61,22 @@ _packb = msgpack.Packer(use_bin_type=True, autoreset=True).pack
 _ND_KEYS = (b"nd", "nd")
 _OPENPI_KEYS = (b"__ndarray__", "__ndarray__")
 _OPENPI_GENERIC_KEYS = (b"__npgeneric__", "__npgeneric__")
+_SHARED_KEYS = (b"xpl_shm", "xpl_shm")
+
+
+@dataclass(frozen=True)
+class SharedArray:
+    """An array placed in a shared-memory segment, as it travels in place of the array itself: which segment,
+    where in it, and what it holds. The receiver checks all of it before reading (``xpolicylab.shm``)."""
+
+    segment: str
+    offset: int
+    dtype: np.dtype
+    shape: tuple[int, ...]
+
+    @property
+    def nbytes(self) -> int:
+        return math.prod(self.shape) * self.dtype.itemsize
 
 
 def _bin_header(n: int) -> bytes:
@@ -133,6 +154,12 @@ class _Encoder:
         else:
             self.buf += _packb({b"nd": False, b"type": value.dtype.str, b"data": value.tobytes()})
 
+    def _shared(self, ref: SharedArray) -> None:
+        self.buf += (
+            b"\x85" + _packb(b"xpl_shm") + b"\xc3" + _packb(b"segment") + _packb(ref.segment) + _packb(b"offset")
+            + _packb(ref.offset) + _packb(b"type") + _packb(ref.dtype.str) + _packb(b"shape") + _packb(list(ref.shape))
+        )
+
     def write(self, obj: Any, depth: int = 0) -> None:
         if depth > MAX_DEPTH:
             raise ValueError(f"object nested deeper than {MAX_DEPTH} levels")
@@ -155,6 +182,8 @@ class _Encoder:
             self.buf += _packb(obj)
         elif isinstance(obj, (bytearray, memoryview)):
             self.buf += _packb(bytes(obj))
+        elif isinstance(obj, SharedArray):
+            self._shared(obj)
         else:
             raise TypeError(f"cannot encode {type(obj).__name__} in a frame")
 
@@ -181,7 +210,8 @@ def _invalid(message: str) -> ProtocolError:
 class _Reader:
     """Sequential reads over the fragments of one message without joining them."""
 
-    def __init__(self, fragments: Sequence[bytes | bytearray | memoryview]) -> None:
+    def __init__(self, fragments: Sequence[bytes | bytearray | memoryview], shared_refs: bool = False) -> None:
+        self.shared_refs = shared_refs  # whether SharedArray maps are accepted (see ``decode``)
         self.frags = [memoryview(f).cast("B") for f in fragments if len(f)]
         self.total = sum(len(f) for f in self.frags)
         self.index = 0
@@ -293,8 +323,22 @@ def _array(data: Any, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
-def _decode_map(obj: dict) -> Any:
-    """Turn an array map of either dialect into a numpy value; leave other maps alone."""
+def _shared_array(obj: dict, accepted: bool) -> SharedArray:
+    """A shared-memory reference, checked for form only (the segment and the bounds are the receiver's to check)."""
+    if not accepted:
+        raise _invalid("shared-memory array references are not accepted here (only by a native server, from a "
+                       "client on its host)")
+    segment, offset = _first(obj, (b"segment", "segment")), _first(obj, (b"offset", "offset"))
+    if not isinstance(segment, str):
+        raise _invalid("a shared-memory reference needs 'segment', a string")
+    if not isinstance(offset, int) or isinstance(offset, bool) or offset < 0:
+        raise _invalid(f"a shared-memory reference needs 'offset', a non-negative integer, got {offset!r}")
+    dtype, shape = _dtype(_first(obj, (b"type", "type"))), _shape(_first(obj, (b"shape", "shape")))
+    return SharedArray(segment, offset, dtype, shape)
+
+
+def _decode_map(obj: dict, shared_refs: bool) -> Any:
+    """Turn an array map of either dialect (or a shared-memory reference) into its value; leave other maps alone."""
     if _first(obj, _ND_KEYS) is True:
         kind = _first(obj, (b"kind", "kind"))
         if kind not in (None, b"", ""):
@@ -313,6 +357,8 @@ def _decode_map(obj: dict) -> Any:
             return dtype.type(_first(obj, (b"data", "data")))
         except (TypeError, ValueError, OverflowError):
             raise _invalid("bad numpy scalar") from None
+    if _first(obj, _SHARED_KEYS) is True:
+        return _shared_array(obj, shared_refs)
     return obj
 
 
@@ -385,6 +431,11 @@ class _BufferPool:
 _POOL = _BufferPool()
 
 
+def recycled_buffer(n: int) -> np.ndarray:
+    """A ``uint8[n]`` buffer for a decoded array, from the pool that recycles them (see ``_BufferPool``)."""
+    return _POOL.get(n)
+
+
 def _bin(r: _Reader, n: int) -> bytes | memoryview:
     if n > r.remaining():
         raise _invalid("truncated message")
@@ -417,17 +468,20 @@ def _map(r: _Reader, n: int, depth: int) -> Any:
         if not isinstance(key, (str, bytes)):
             raise _invalid(f"map keys must be strings, got {type(key).__name__}")
         out[key] = _read(r, depth + 1)
-    return _decode_map(out)
+    return _decode_map(out, r.shared_refs)
 
 
-def decode(fragments: bytes | bytearray | memoryview | Sequence[bytes | bytearray | memoryview]) -> Any:
+def decode(fragments: bytes | bytearray | memoryview | Sequence[bytes | bytearray | memoryview],
+           shared_refs: bool = False) -> Any:
     """Decode one MessagePack message given whole or as the list of its WebSocket fragments.
 
-    Raises ``ProtocolError(invalid_frame)`` for anything malformed, truncated, trailing or unsafe.
+    Raises ``ProtocolError(invalid_frame)`` for anything malformed, truncated, trailing or unsafe. With
+    ``shared_refs``, shared-memory references come out as ``SharedArray``s for the caller to resolve (the native
+    server does, once it knows which request they belong to); without, they are refused like any unknown array.
     """
     if isinstance(fragments, (bytes, bytearray, memoryview)):
         fragments = [fragments]
-    reader = _Reader(fragments)
+    reader = _Reader(fragments, shared_refs)
     if reader.remaining() == 0:
         raise _invalid("empty frame")
     value = _read(reader, 0)

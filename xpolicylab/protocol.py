@@ -203,13 +203,15 @@ def decode_frame(fragments: Sequence[bytes | bytearray | memoryview] | bytes) ->
     return parse_frame(codec.decode(fragments))
 
 
-def decode_frame_or_error(fragments: Sequence[bytes | bytearray | memoryview] | bytes) -> tuple[Frame | None, Frame | None]:
+def decode_frame_or_error(fragments: Sequence[bytes | bytearray | memoryview] | bytes,
+                          shared_refs: bool = False) -> tuple[Frame | None, Frame | None]:
     """``(frame, None)``, or ``(None, error frame)`` when the message is not a valid frame.
 
     The error frame carries the ids that could be read from the raw map (see ``error_for_unreadable``).
+    ``shared_refs``: shared-memory references stay in the payload as ``codec.SharedArray``s (see ``codec.decode``).
     """
     try:
-        wire = codec.decode(fragments)
+        wire = codec.decode(fragments, shared_refs)
     except ProtocolError as exc:
         return None, error_for_unreadable(None, exc)
     try:

@@ -11,6 +11,9 @@ Design choices, and why:
 * A malformed frame is answered with an ``error`` frame (native) or openpi's text-frame + close 1011, and only
   ever affects its own connection. Frames over ``max_frame_mb`` are refused by the WebSocket layer with close
   code 1009 before they are buffered.
+* Shared memory (``capabilities.shared_memory``, the ``shared_memory`` option): a client on this host may send
+  large arrays as references to its own segments; each connection opens a segment once, and only a loopback
+  peer's references are read (``xpolicylab.shm``). The arrays are copied out before the model sees them.
 * The optional token is checked during the HTTP upgrade (``Authorization: Bearer <t>`` or openpi's
   ``Api-Key <t>``) with a constant-time comparison; ``/healthz`` answers without one.
 """
@@ -36,7 +39,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from xpolicylab import codec, transport
+from xpolicylab import codec, shm, transport
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, as_model
 from xpolicylab.protocol import (PROTOCOL_VERSION, REQUESTS, SERVER_NAME, UPSTREAM_FORMAT, Frame, MessageType,
@@ -61,6 +64,7 @@ class ServerConfig:
     request_timeout_s: float = 120.0
     ping_interval_s: float | None = 20.0
     ping_timeout_s: float | None = 120.0
+    shared_memory: bool = True
 
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
@@ -220,13 +224,28 @@ class PolicyServer:
         return reply
 
     def hello_payload(self) -> dict[str, Any]:
-        """What ``hello_ack`` says about this server and its policy."""
+        """What ``hello_ack`` says about this server and its policy (``shared_memory`` only when on, so that a
+        server with it off answers exactly as before it existed)."""
+        capabilities: dict[str, Any] = {"batch_infer": True, "native_batch": self._metadata.batch,
+                                        "max_frame_bytes": int(self.config.max_frame_mb * (1 << 20))}
+        if self.config.shared_memory:
+            capabilities["shared_memory"] = True
         return {
             "ok": True, "server": SERVER_NAME, "server_instance_id": self.instance_id,
             "protocol_version": PROTOCOL_VERSION, "wire_format": UPSTREAM_FORMAT, "metadata": self._metadata.to_dict(),
-            "capabilities": {"batch_infer": True, "native_batch": self._metadata.batch,
-                             "max_frame_bytes": int(self.config.max_frame_mb * (1 << 20))},
+            "capabilities": capabilities,
         }
+
+    def _shared_memory_refusal(self, ws: ServerConnection) -> str | None:
+        """Why this connection's shared-memory references are refused, or ``None`` when they are read: only a
+        peer on this host can have written into this host's segments, and only a loopback address proves it."""
+        if not self.config.shared_memory:
+            return "this server does not accept shared-memory references (it runs with shared_memory=false)"
+        peer = ws.remote_address
+        if not shm.is_loopback_address(peer):
+            where = peer[0] if peer else peer
+            return f"shared-memory references are accepted only from a loopback peer, not from {where}"
+        return None
 
     async def _hook(self, name: str, arg: dict[str, Any], code: ErrorCode) -> dict[str, Any]:
         fn = getattr(self.model, name)
@@ -273,8 +292,9 @@ class PolicyServer:
         raise ProtocolError(ErrorCode.UNKNOWN_MESSAGE_TYPE, f"{kind.value!r} is not a request a server answers",
                             {"message_type": kind.value, "requests": sorted(t.value for t in REQUESTS)})
 
-    async def _respond(self, ws: ServerConnection, frame: Frame) -> None:
+    async def _respond(self, ws: ServerConnection, frame: Frame, segments: shm.SegmentCache) -> None:
         try:
+            segments.resolve(frame.payload)  # copies: the model keeps nothing of the client's segments
             reply = await self._dispatch(frame)
         except ProtocolError as exc:
             reply = frame.error(exc)
@@ -291,6 +311,7 @@ class PolicyServer:
 
     async def _serve_native(self, ws: ServerConnection) -> None:
         tasks: set[asyncio.Task[None]] = set()
+        segments = shm.SegmentCache(self._shared_memory_refusal(ws))
         try:
             while True:
                 is_text, parts = await transport.recv_message(ws)
@@ -298,19 +319,20 @@ class PolicyServer:
                     frame, error = None, error_for_unreadable(None, ProtocolError(
                         ErrorCode.INVALID_FRAME, "text frames are not part of the protocol; send binary MessagePack"))
                 else:
-                    frame, error = decode_frame_or_error(parts)
+                    frame, error = decode_frame_or_error(parts, shared_refs=True)
                 if frame is None:
                     await transport.send_chunks(ws, encode_frame(error))
                     continue
                 if frame.message_type is MessageType.CLOSE:
                     await ws.close(reason="client sent close")
                     return
-                task = asyncio.create_task(self._respond(ws, frame))
+                task = asyncio.create_task(self._respond(ws, frame, segments))
                 tasks.add(task)
                 task.add_done_callback(tasks.discard)
         finally:
             if tasks:
                 await asyncio.gather(*tasks, return_exceptions=True)
+            segments.close()
 
     async def _serve_openpi(self, ws: ServerConnection) -> None:
         await ws.send(codec.encode(self._metadata.to_dict(), codec.Dialect.OPENPI))

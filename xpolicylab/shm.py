@@ -1,0 +1,278 @@
+"""Shared memory for large arrays when client and server share a host.
+
+On loopback the socket is the bottleneck: every image byte is framed, copied through the kernel twice and
+parsed. A client on the server's host instead writes each large array (``THRESHOLD`` bytes or more) of an
+``infer`` request into a segment of its own (``SegmentPool``) and sends a small reference in its place
+(``codec.SharedArray``); the server copies the array out of the segment (``SegmentCache``) before the model sees
+it, so the model owns what it keeps and the client may reuse the segment as soon as the reply arrives.
+
+Negotiation: a native server advertises ``capabilities.shared_memory`` (its ``shared_memory`` option) and accepts
+references only from a loopback peer; the client (``shared_memory`` = ``auto`` | ``on`` | ``off``) uses them when
+the URL's host is loopback, the server advertises them and one probe at connect time went through (a server in
+a container may share the loopback interface but not ``/dev/shm``). Everything else travels as before.
+
+Safety: segment names carry ``PREFIX`` and the server opens no other; a reference must lie within its segment
+and name a bool, integer or float dtype; every fault is an ``invalid_frame`` error naming what was wrong, for
+that request only. Segments are unlinked when the client closes, when it is collected or exits, and by
+``multiprocessing``'s resource tracker if it is killed; the server unregisters the segments it merely opens, or
+its own tracker would unlink the client's segments when the server exits.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import mmap
+import os
+import re
+import secrets
+import weakref
+from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from multiprocessing import resource_tracker
+from multiprocessing.shared_memory import SharedMemory
+from typing import Any
+
+import numpy as np
+
+from xpolicylab import codec
+from xpolicylab.errors import ErrorCode, ProtocolError
+
+#: Values of the client's ``shared_memory`` option.
+MODES = ("auto", "on", "off")
+#: Every segment name starts with this; the server refuses any other name.
+PREFIX = "xpl_"
+#: Arrays at least this large travel through shared memory (smaller ones cost less on the socket than a reference).
+THRESHOLD = codec.LARGE_BIN
+#: About what one reference takes in a frame, for the client's frame budget.
+REFERENCE_BYTES = 96
+#: Offsets of arrays in a segment are multiples of this (cache lines; any dtype's alignment).
+ALIGN = 64
+#: Segments one server connection keeps open; older ones are closed (a client that grew a segment unlinked it).
+OPEN_PER_CONNECTION = 16
+
+_NAME = re.compile(rf"{PREFIX}[A-Za-z0-9_]{{1,60}}\Z")
+#: Names of the segments this process created: a server in the same process (tests, notebooks) must leave their
+#: resource-tracker registration alone, since it is the creator's.
+_CREATED: set[str] = set()
+
+
+class NoSharedMemory(RuntimeError):
+    """A segment for a request could not be created (``/dev/shm`` full or missing); nothing was sent."""
+
+
+def mode(value: str | bool) -> str:
+    """The ``shared_memory`` option as one of ``MODES``; YAML's booleans (``on`` reads as true there) are accepted."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    text = str(value).strip().lower()
+    text = {"true": "on", "false": "off"}.get(text, text)
+    if text not in MODES:
+        raise ValueError(f"shared_memory must be one of {', '.join(MODES)}, got {value!r}")
+    return text
+
+
+def is_loopback_host(host: str | None) -> bool:
+    """Whether a URL's host is this machine's loopback (``localhost``, 127.0.0.0/8 or ::1)."""
+    return host == "localhost" or is_loopback_address(host)
+
+
+def is_loopback_address(peer: Any) -> bool:
+    """Whether a socket address (``(host, port, ...)`` or a bare host) is loopback, IPv4-mapped IPv6 included."""
+    host = peer[0] if isinstance(peer, (tuple, list)) and peer else peer
+    try:
+        address = ipaddress.ip_address(str(host).split("%")[0])
+    except ValueError:
+        return False
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        address = address.ipv4_mapped
+    return address.is_loopback
+
+
+def travels_shared(value: Any) -> bool:
+    """Whether ``value`` goes through shared memory rather than the socket (a large array of a wire dtype)."""
+    return isinstance(value, np.ndarray) and value.nbytes >= THRESHOLD and value.dtype.kind in codec.SAFE_KINDS
+
+
+def _aligned(n: int) -> int:
+    return -(-n // ALIGN) * ALIGN
+
+
+def _shared_bytes(value: Any) -> int:
+    """Bytes of segment ``value``'s shared arrays need, each at an aligned offset."""
+    if travels_shared(value):
+        return _aligned(value.nbytes)
+    if isinstance(value, dict):
+        return sum(_shared_bytes(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(_shared_bytes(v) for v in value)
+    return 0
+
+
+def _place(value: Any, segment: SharedMemory, cursor: list[int]) -> Any:
+    """``value`` with each shared array copied into ``segment`` (from ``cursor[0]`` on) and replaced by its
+    reference; containers are rebuilt, the caller's are left as they were."""
+    if travels_shared(value):
+        offset = cursor[0]
+        cursor[0] += _aligned(value.nbytes)
+        np.copyto(np.ndarray(value.shape, value.dtype, segment.buf, offset), value)
+        return codec.SharedArray(segment.name, offset, value.dtype, value.shape)
+    if isinstance(value, dict):
+        return {k: _place(v, segment, cursor) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_place(v, segment, cursor) for v in value]
+    return value
+
+
+def _create(size: int) -> SharedMemory:
+    """A new segment of at least ``size`` bytes, its memory reserved now: on a full ``/dev/shm`` (64 MiB in a
+    default Docker container) writing into a merely truncated segment would kill the process with SIGBUS."""
+    size = -(-size // mmap.PAGESIZE) * mmap.PAGESIZE
+    name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(6)}"  # the pid says whose a left-over segment was
+    try:
+        segment = SharedMemory(name, create=True, size=size)
+    except OSError as exc:
+        raise NoSharedMemory(f"cannot create a {size / (1 << 20):.1f} MiB shared-memory segment: {exc}") from exc
+    _CREATED.add(segment.name)
+    if hasattr(os, "posix_fallocate"):  # Linux; macOS has no tmpfs to overfill
+        try:
+            os.posix_fallocate(segment._fd, 0, size)  # SharedMemory keeps its descriptor there
+        except OSError as exc:
+            _unlink(segment)
+            raise NoSharedMemory(f"/dev/shm has no room for a {size / (1 << 20):.1f} MiB segment: {exc}") from exc
+    return segment
+
+
+def _unlink(segment: SharedMemory) -> None:
+    _CREATED.discard(segment.name)
+    segment.close()
+    try:
+        segment.unlink()
+    except FileNotFoundError:  # someone removed it from /dev/shm by hand
+        pass
+
+
+def _unlink_all(segments: dict[str, SharedMemory]) -> None:
+    while segments:
+        _unlink(segments.popitem()[1])
+
+
+class SegmentPool:
+    """The client's segments: each leased to one request at a time (requests in flight together each need their
+    own), reused once its reply has arrived, grown when a request needs more, all unlinked on ``close``."""
+
+    def __init__(self) -> None:
+        self._owned: dict[str, SharedMemory] = {}
+        self._free: list[SharedMemory] = []
+        # Unlinks what is left if the pool is collected or the interpreter exits (Ctrl-C) without close().
+        self._finalizer = weakref.finalize(self, _unlink_all, self._owned)
+
+    @contextmanager
+    def lease(self, payload: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        """``payload`` as it goes on the wire: its large arrays written into a segment held until the block ends.
+
+        The segment is reused only after a normal exit (the reply arrived); after an exception (a timeout, a lost
+        connection) the server may still read it, so it is unlinked instead. Raises ``NoSharedMemory`` before
+        anything is written when no segment can be had."""
+        need = _shared_bytes(payload)
+        if not need:
+            yield payload
+            return
+        segment = self._acquire(need)
+        try:
+            yield _place(payload, segment, [0])
+        except BaseException:
+            self._drop(segment)
+            raise
+        if segment.name in self._owned:  # unless the pool was closed meanwhile
+            self._free.append(segment)
+
+    def _acquire(self, need: int) -> SharedMemory:
+        fitting = [s for s in self._free if s.size >= need]
+        if fitting:
+            segment = min(fitting, key=lambda s: s.size)
+            self._free.remove(segment)
+            return segment
+        if self._free:  # every free segment is too small: replace the largest by one that fits
+            self._drop(max(self._free, key=lambda s: s.size))
+        segment = _create(need + need // 8)
+        self._owned[segment.name] = segment
+        return segment
+
+    def _drop(self, segment: SharedMemory) -> None:
+        if segment in self._free:
+            self._free.remove(segment)
+        if self._owned.pop(segment.name, None) is not None:  # not already unlinked by close()
+            _unlink(segment)
+
+    def close(self) -> None:
+        """Unlink every segment (the pool can still be used afterwards; it creates new ones)."""
+        self._free.clear()
+        _unlink_all(self._owned)
+
+
+def _invalid(message: str, ref: codec.SharedArray) -> ProtocolError:
+    return ProtocolError(ErrorCode.INVALID_FRAME, message, {"field": "shared_memory", "segment": ref.segment})
+
+
+class SegmentCache:
+    """The segments one server connection reads from: each opened once, then kept (up to ``OPEN_PER_CONNECTION``)
+    so that its pages stay mapped; all closed with the connection.
+
+    ``refusal`` says why this connection may not use shared memory at all (a remote peer, or the server's
+    ``shared_memory`` option off); every reference then gets that as its error.
+    """
+
+    def __init__(self, refusal: str | None = None) -> None:
+        self.refusal = refusal
+        self._open: OrderedDict[str, SharedMemory] = OrderedDict()
+
+    def resolve(self, value: Any) -> None:
+        """Replace, in place, every reference in a decoded payload by a copy of its array that the server owns."""
+        items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+        for key, item in items:
+            if isinstance(item, codec.SharedArray):
+                value[key] = self._copy(item)
+            else:
+                self.resolve(item)
+
+    def _copy(self, ref: codec.SharedArray) -> np.ndarray:
+        """The referenced array, copied out of its segment once checked (read-only, like every decoded array)."""
+        if self.refusal is not None:
+            raise _invalid(self.refusal, ref)
+        segment = self._segment(ref)
+        if ref.offset + ref.nbytes > segment.size:
+            raise _invalid(f"shared-memory reference out of bounds: {ref.nbytes} bytes at offset {ref.offset} of "
+                           f"segment {ref.segment!r}, which has {segment.size}", ref)
+        out = codec.recycled_buffer(ref.nbytes).view(ref.dtype).reshape(ref.shape)
+        np.copyto(out, np.ndarray(ref.shape, ref.dtype, segment.buf, ref.offset))
+        out.flags.writeable = False
+        return out
+
+    def _segment(self, ref: codec.SharedArray) -> SharedMemory:
+        name = ref.segment
+        if not _NAME.match(name):
+            raise _invalid(f"shared-memory segment name {name!r} is refused: names are {PREFIX!r} followed by up to "
+                           "60 letters, digits or underscores", ref)
+        segment = self._open.get(name)
+        if segment is not None:
+            self._open.move_to_end(name)
+            return segment
+        try:
+            segment = SharedMemory(name)
+        except FileNotFoundError:
+            raise _invalid(f"no shared-memory segment {name!r} on this host (client and server must share "
+                           "/dev/shm)", ref) from None
+        except (OSError, ValueError) as exc:
+            raise _invalid(f"shared-memory segment {name!r} cannot be opened: {exc}", ref) from None
+        if name not in _CREATED:
+            resource_tracker.unregister(segment._name, "shared_memory")  # the client's to unlink, not our tracker's
+        self._open[name] = segment
+        if len(self._open) > OPEN_PER_CONNECTION:
+            self._open.popitem(last=False)[1].close()
+        return segment
+
+    def close(self) -> None:
+        """Close (never unlink) every segment this connection opened."""
+        while self._open:
+            self._open.popitem()[1].close()
