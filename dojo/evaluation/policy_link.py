@@ -2,7 +2,8 @@
 
 `dojo run policy=zero` needs no server: the reference policies are XPolicyLab `Model`s and are called directly,
 batched. `policy.url=ws://...` talks to any XPolicyLab or openpi server through the XPolicyLab client, which
-brings retries, receive deadlines and reconnects. Both give the loop the same three calls.
+brings retries, receive deadlines, reconnects and, for a server on this host, images through shared memory
+(`policy.shared_memory`). Both give the loop the same three calls.
 """
 
 from __future__ import annotations
@@ -97,9 +98,10 @@ def policy_config_for(cfg: dict[str, Any], worker: int) -> dict[str, Any]:
 def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
     """The policy a run's config names: `url` set -> a server; otherwise a built-in or importable Model."""
     if cfg.get("url"):
-        return RemotePolicy(str(cfg["url"]), str(cfg.get("protocol", "xpolicylab")), cfg.get("token"))
+        return RemotePolicy(str(cfg["url"]), str(cfg.get("protocol", "xpolicylab")), cfg.get("token"),
+                            shared_memory=cfg.get("shared_memory", "auto"))
     from xpolicylab.policies import load_policy
 
-    options = {k: v for k, v in cfg.items() if k not in ("name", "url", "protocol", "token")}
+    options = {k: v for k, v in cfg.items() if k not in ("name", "url", "protocol", "token", "shared_memory")}
     name = RUNTIME_POLICIES.get(str(cfg["name"]), str(cfg["name"]))
     return InProcessPolicy(load_policy(name, {"embodiment": embodiment, **options}))
