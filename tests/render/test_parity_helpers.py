@@ -29,6 +29,15 @@ def test_psnr_is_infinite_like_for_equal_images_and_falls_with_noise():
     assert P.psnr(a, rng.integers(0, 256, size=a.shape, dtype=np.uint8)) < 10
 
 
+def test_block_mean_removes_grain_finer_than_its_blocks_but_keeps_shading():
+    grain = np.tile(np.array([[0, 255], [255, 0]], np.uint8), (8, 8))[..., None].repeat(3, axis=2)  # 16x16
+    flat = np.full_like(grain, 127)
+    assert P.psnr(grain, flat) < 10 and P.psnr(P.block_mean(grain), P.block_mean(flat)) > 50
+    darker = (grain // 2).astype(np.uint8)  # a shading difference is still there after averaging
+    assert P.psnr(P.block_mean(grain), P.block_mean(darker)) < 20
+    assert P.block_mean(np.zeros((10, 9, 3)), 4).shape == (2, 2, 3)
+
+
 def test_depth_stats_only_count_pixels_both_hit():
     a = np.array([[1000, 0, 2000, 3000]], np.uint16)
     b = np.array([[1001, 500, 0, 3050]], np.uint16)
@@ -66,7 +75,7 @@ def test_mujoco_reference_images_and_saved_batched_round_trip(standard_plan, tmp
     summary = P.summarize(rows, 1, 32, 24)
     assert summary["failed"] == 0 and summary["mean_psnr_db"] == 99.0
     assert summary["by_task_setting"] == {standard_plan.task: {standard_plan.setting: {
-        "psnr_db": 99.0, "ssim": 1.0, "rgb_mae": 0.0, "images": 2 * len(CAMERAS)}}}
+        "psnr_db": 99.0, "psnr_db_4x4": 99.0, "ssim": 1.0, "rgb_mae": 0.0, "images": 2 * len(CAMERAS)}}}
 
 
 def test_bench_grid_and_split():

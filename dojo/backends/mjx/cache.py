@@ -100,10 +100,12 @@ def graph_mode_name(mode: object | None) -> str | None:
 
 
 def quiet_warp() -> None:
-    """Warp logs at WARNING and above only (its INFO lines go to stdout)."""
+    """Warp logs at WARNING and above only, and prints no start-up banner (both go to stdout, where `dojo bench`
+    and the parity script print their one JSON line)."""
     import warp as wp
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    wp.config.quiet = True
 
 
 def describe_impl(impl: str) -> str:
