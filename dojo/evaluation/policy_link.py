@@ -8,12 +8,15 @@ brings retries, receive deadlines, reconnects and, for a server on this host, im
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from typing import Any, Protocol
 
 import numpy as np
 
 from xpolicylab.model import Model, Observation, PolicyMetadata
+
+log = logging.getLogger(__name__)
 
 
 class PolicyLink(Protocol):
@@ -57,6 +60,9 @@ class RemotePolicy:
 
         self.client = PolicyClient(url, protocol, token=token, **client_args)
         self.metadata = self.client.connect()
+        # Whether images skip the socket decides a camera run's speed on one host: say which way they go.
+        log.info("policy link: %s (%s), arrays %s", url, protocol, "through shared memory"
+                 if self.client.uses_shared_memory else "through the socket")
 
     def reset(self, env_ids: Sequence[int]) -> None:
         self.client.reset(env_ids=list(env_ids))
