@@ -9,14 +9,24 @@ from conftest import toy_plan
 from mujoco import mjx
 
 from dojo.backends.mjx.backend import PlanLayout
-from dojo.backends.mjx.bucket import make_buckets, structural_signature
-from dojo.backends.mjx.pad import GRAVCOMP_IN_USE, PARK_ORIGIN
+from dojo.backends.mjx.bucket import VALUE_FIELDS, compiled_models, make_buckets, structural_signature
+from dojo.backends.mjx.pad import GRAVCOMP_IN_USE, PARK_ORIGIN, pad_group
 
 RANDOM_CLUTTER = [("ball",), ("box", "ball"), (), ("ball", "ball")]
 
 
 def _random_plans():
     return [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate(RANDOM_CLUTTER)]
+
+
+def test_models_compiled_on_threads_are_the_serial_ones_in_order():
+    padded = pad_group(_random_plans(), "toy", every_object=False)
+    threaded = compiled_models(padded)
+    for pp, model in zip(padded, threaded, strict=True):
+        serial = mujoco.MjModel.from_xml_string(pp.xml)
+        assert structural_signature(model) == structural_signature(serial)
+        for name in VALUE_FIELDS:
+            np.testing.assert_array_equal(getattr(model, name), getattr(serial, name), err_msg=name)
 
 
 def test_standard_plans_of_a_task_share_one_bucket_and_batch_their_poses():
