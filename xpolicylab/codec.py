@@ -189,12 +189,86 @@ class _Encoder:
             raise TypeError(f"cannot encode {type(obj).__name__} in a frame")
 
 
+_FAST_CONTAINER_TYPES = frozenset({dict, list, tuple})
+#: numpy scalars whose ``item()`` is a Python bool, int or float (not ``longdouble``).
+_NUMPY_SCALAR_TYPES = frozenset(np.dtype(code).type for code in "?bhilqBHILQefd")
+#: What ``_fast_encode`` accepts, by exact type: msgpack's packer (``strict_types``) writes the plain ones just as
+#: ``_Encoder`` does and hands the others to ``_fast_default``; subclasses, memoryviews and the rest go to
+#: ``_Encoder``.
+_FAST_ENCODE_TYPES = _FAST_CONTAINER_TYPES | _NUMPY_SCALAR_TYPES | {
+    type(None), bool, int, float, str, bytes, bytearray, np.ndarray, SharedArray}
+_KEY_TYPES = frozenset({str, bytes})
+
+
+class _Unpackable(Exception):
+    """``_fast_encode`` cannot write this value byte for byte as ``_Encoder`` does; ``_Encoder`` writes it."""
+
+
+def _fast_encodable(obj: dict | list | tuple, depth: int = 0) -> bool:
+    """Whether ``obj`` holds only ``_FAST_ENCODE_TYPES``, with str or bytes keys, no deeper than ``_Encoder``
+    writes (msgpack's packer checks neither key types nor ``MAX_DEPTH``). One pass over the values, in C."""
+    if depth >= MAX_DEPTH:
+        return False
+    if type(obj) is dict:
+        if not _KEY_TYPES.issuperset(map(type, obj)):
+            return False
+        items = obj.values()
+    else:
+        items = obj
+    kinds = set(map(type, items))
+    if not _FAST_ENCODE_TYPES.issuperset(kinds):
+        return False
+    return kinds.isdisjoint(_FAST_CONTAINER_TYPES) or all(
+        _fast_encodable(v, depth + 1) for v in items if type(v) in _FAST_CONTAINER_TYPES)
+
+
+def _fast_default(obj: Any, dialect: Dialect) -> Any:
+    """msgpack's ``default`` hook: what ``_Encoder`` writes for a tuple, a numpy scalar, a small array or a
+    shared-memory reference, as a value the packer writes natively (maps keep their key order)."""
+    kind = type(obj)
+    if kind is tuple:
+        return list(obj)
+    if kind in _NUMPY_SCALAR_TYPES:
+        if dialect is Dialect.OPENPI:
+            return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+        return {b"nd": False, b"type": obj.dtype.str, b"data": obj.tobytes()}
+    if kind is SharedArray:
+        if not (type(obj.segment) is str and type(obj.offset) is int and all(type(d) is int for d in obj.shape)):
+            raise _Unpackable("a reference of other types")  # that _Encoder may refuse, or write otherwise
+        return {b"xpl_shm": True, b"segment": obj.segment, b"offset": obj.offset, b"type": obj.dtype.str,
+                b"shape": list(obj.shape)}
+    if kind is not np.ndarray or obj.nbytes >= LARGE_BIN:  # a large array travels as its own zero-copy chunk
+        raise _Unpackable(kind.__name__)
+    _check_dtype(obj.dtype)
+    if dialect is Dialect.OPENPI:
+        return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str, b"shape": list(obj.shape)}
+    return {b"nd": True, b"type": obj.dtype.str, b"kind": b"", b"shape": list(obj.shape), b"data": obj.tobytes()}
+
+
+_FAST_DEFAULTS = {dialect: functools.partial(_fast_default, dialect=dialect) for dialect in Dialect}
+
+
+def _fast_encode(obj: Any, dialect: Dialect) -> list[bytes | memoryview]:
+    """``encode_chunks`` through msgpack's C packer, byte for byte: one chunk, as ``_Encoder`` makes of a message
+    without large arrays. Raises for anything else (see ``_fast_encodable``, ``_fast_default``)."""
+    if type(obj) not in _FAST_CONTAINER_TYPES or not _fast_encodable(obj):
+        raise _Unpackable(type(obj).__name__)
+    # A packer per call: the shared one (``_packb``) must not be re-entered from ``default`` by another thread.
+    return [msgpack.packb(obj, use_bin_type=True, strict_types=True, default=_FAST_DEFAULTS[dialect])]
+
+
 def encode_chunks(obj: Any, dialect: Dialect = Dialect.XPOLICYLAB) -> list[bytes | memoryview]:
     """Encode ``obj`` as chunks whose concatenation is the MessagePack message; large arrays are not copied.
 
-    The arrays must not be modified until the chunks have been sent.
+    The arrays must not be modified until the chunks have been sent. A message of plain values and small arrays
+    is written by ``_fast_encode``; the rest, and every error, by ``_Encoder``.
     """
-    enc = _Encoder(Dialect(dialect))
+    dialect = Dialect(dialect)
+    try:
+        return _fast_encode(obj, dialect)
+    except Exception:  # noqa: BLE001 - _Encoder writes (or refuses) whatever the fast path could not
+        pass
+    enc = _Encoder(dialect)
     enc.write(obj)
     return enc.finish()
 

@@ -7,6 +7,7 @@ must be the same value (types, dtypes, shapes, read-only flags included) or the 
 
 from __future__ import annotations
 
+import collections
 import math
 import random
 import struct
@@ -294,3 +295,94 @@ def test_fast_path_bounds_what_it_allocates():
             fast(data)
     with pytest.raises(ProtocolError, match="nested deeper"):
         codec.decode(RAW["stacked list headers"])
+
+
+def encoded(encoder, obj: Any, dialect: codec.Dialect) -> tuple[str, Any]:
+    """``("ok", chunks as bytes)`` or ``("error", (exception type, message))``."""
+    try:
+        return "ok", [bytes(c) for c in encoder(obj, dialect)]
+    except Exception as exc:  # noqa: BLE001 - compared between the two paths
+        return "error", (type(exc), str(exc))
+
+
+def exact_chunks(obj: Any, dialect: codec.Dialect) -> list[bytes | memoryview]:
+    encoder = codec._Encoder(dialect)
+    encoder.write(obj)
+    return encoder.finish()
+
+
+def check_encode(obj: Any) -> bool:
+    """``encode_chunks`` gives exactly what ``_Encoder`` gives (chunk for chunk, or the same error) in both dialects;
+    returns whether the fast path wrote it."""
+    taken = True
+    for dialect in codec.Dialect:
+        want = encoded(exact_chunks, obj, dialect)
+        assert encoded(codec.encode_chunks, obj, dialect) == want
+        fast_result = encoded(codec._fast_encode, obj, dialect)
+        taken &= fast_result[0] == "ok"
+        assert fast_result[0] == "error" or fast_result == want
+    return taken
+
+
+class Key(str):
+    pass
+
+
+class Number(int):
+    pass
+
+
+ODD_VALUES = {  # each is written by _Encoder (or refused by it), whatever the fast path would make of it
+    "tuple": (1, (2, "x"), []),
+    "numpy scalars": [np.float64(1.5), np.float32(2), np.int64(3), np.bool_(True), np.uint64(2**64 - 1),
+                      np.float16(0.5), np.intc(1), np.longlong(2), np.ulonglong(3), np.int8(-1)],
+    "odd numpy scalars": [np.longdouble(1.5), np.complex64(1), np.str_("x"), np.bytes_(b"x"), np.void(b"x"),
+                          np.datetime64(1, "s")],
+    "str subclass key": {Key("a"): 1}, "str subclass value": [Key("a")], "int subclass": [Number(3)],
+    "bool key": {True: 1}, "int key": {1: 2}, "None key": {None: 1}, "tuple key": {(1,): 2},
+    "memoryview": [memoryview(b"abc")], "memoryview of floats": [memoryview(np.ones(3, np.float32))],
+    "non-contiguous memoryview": [memoryview(np.arange(8, dtype=np.uint8))[::2]], "bytearray": [bytearray(b"ab")],
+    "ext type": [msgpack.ExtType(1, b"x")], "timestamp": [msgpack.Timestamp(1, 0)], "set": [{1, 2}],
+    "huge int": [2**64], "negative huge int": [-2**63 - 1], "surrogate": ["\ud800"],
+    "object array": [np.array([1, "x"], dtype=object)], "unicode array": [np.array(["ab"])],
+    "complex array": [np.ones(2, np.complex64)], "datetime array": [np.zeros(2, "M8[s]")],
+    "non-contiguous array": [np.arange(12, dtype=np.int16).reshape(3, 4)[:, ::2]],
+    "fortran array": [np.asfortranarray(np.ones((2, 3)))], "array subclass": [np.ma.masked_array([1, 2])],
+    "transposed": [np.arange(6.0).reshape(2, 3).T], "large array": [np.zeros(codec.LARGE_BIN, np.uint8)],
+    "just below large": [np.zeros(codec.LARGE_BIN - 1, np.uint8)], "0-d array": np.array(2.5),
+    "0-d in a map": {"a": np.array(7, np.int8)}, "empty arrays": [np.zeros((0, 3)), np.zeros(0, bool)],
+    "big-endian": [np.arange(3, dtype=">u4")], "shared ref": [codec.SharedArray("xpl_1", 8, np.dtype("<f4"), (2, 3))],
+    "shared ref numpy shape": [codec.SharedArray("xpl_1", 8, np.dtype("<f4"), (np.int64(2),))],
+    "shared ref numpy offset": [codec.SharedArray("xpl_1", np.int64(8), np.dtype("<f4"), (2,))],
+    "shared ref bool offset": [codec.SharedArray("xpl_1", True, np.dtype("<f4"), (2,))],
+    "shared ref object dtype": [codec.SharedArray("xpl_1", 8, np.dtype(object), (2,))],
+    "dict subclass": [collections.OrderedDict(a=1)], "list subclass": [type("L", (list,), {})([1])],
+    "top-level scalar": 5, "top-level str": "x", "top-level None": None, "function": [len],
+}
+
+
+@pytest.mark.parametrize("name", sorted(ODD_VALUES))
+def test_encoder_odd_values(name):
+    check_encode(ODD_VALUES[name])
+    check_encode({"wrapped": [ODD_VALUES[name], 1]})
+
+
+def test_encoder_nesting_around_the_depth_limit():
+    for depth in range(codec.MAX_DEPTH - 3, codec.MAX_DEPTH + 3):
+        for leaf in (1, [], {}, np.zeros(2), (1,)):
+            value: Any = leaf
+            for i in range(depth):
+                value = [value] if i % 2 else {"k": value}
+            assert check_encode(value) or depth >= codec.MAX_DEPTH - 1
+
+
+def test_encoder_generated_payloads():
+    rng = random.Random(5)
+    taken = 0
+    for i in range(300):
+        payload = {"observations": [random_value(rng, 5, True) for _ in range(rng.randrange(4))], "i": i,
+                   "t": tuple(INTS[:rng.randrange(len(INTS))]), "f": FLOATS, "s": STRINGS[:-1]}
+        taken += check_encode(payload)
+    assert taken == 300
+    assert check_encode({"observations": [{**SAMPLE, "image": np.zeros((4, 4, 3), np.uint8)}] * 3,
+                         "env_ids": list(range(3))})
