@@ -396,6 +396,13 @@ def _array(data: Any, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def _numpy_array(kind: Any, data: Any, dtype: Any, shape: Any) -> np.ndarray:
+    """The array of a msgpack-numpy map (``nd`` true), from its fields as they came."""
+    if kind not in (None, b"", ""):
+        raise _invalid(f"array kind {kind!r} is not allowed (object and structured arrays are refused)")
+    return _array(data, _dtype(dtype), _shape(shape))
+
+
 def _shared_array(obj: dict, accepted: bool) -> SharedArray:
     """A shared-memory reference, checked for form only (the segment and the bounds are the receiver's to check)."""
     if not accepted:
@@ -416,11 +423,8 @@ def _decode_map(obj: dict, shared_refs: bool) -> Any:
         return obj
     nd = _first(obj, _ND_KEYS)
     if nd is True:
-        kind = _first(obj, (b"kind", "kind"))
-        if kind not in (None, b"", ""):
-            raise _invalid(f"array kind {kind!r} is not allowed (object and structured arrays are refused)")
-        return _array(_first(obj, (b"data", "data")), _dtype(_first(obj, (b"type", "type"))),
-                      _shape(_first(obj, (b"shape", "shape"))))
+        return _numpy_array(_first(obj, (b"kind", "kind")), _first(obj, (b"data", "data")),
+                            _first(obj, (b"type", "type")), _first(obj, (b"shape", "shape")))
     if nd is False:
         dtype = _dtype(_first(obj, (b"type", "type")))
         return _array(_first(obj, (b"data", "data")), dtype, ())[()]
@@ -560,6 +564,7 @@ FAST_MAX_LEN = 4096
 #: shape list (one more), and the Python decoder refuses a container at depth ``MAX_DEPTH``.
 FAST_MAX_DEPTH = MAX_DEPTH - 3
 _SCALAR_TYPES = frozenset({type(None), bool, int, float, str, bytes})
+_NUMPY_MAP_KEYS = frozenset({b"nd", b"type", b"kind", b"shape", b"data"})
 
 
 class _Unsure(Exception):
@@ -590,6 +595,10 @@ def _fast_map(pairs: list[tuple[Any, Any]], shared_refs: bool) -> Any:
     obj = dict(pairs)
     if len(obj) != len(pairs):
         raise _Unsure("duplicate map keys")
+    if obj.keys() == _NUMPY_MAP_KEYS and obj[b"nd"] is True:
+        # The map _Encoder writes for an array, as _decode_map would read it; _numpy_array accepts only flat
+        # fields (a kind, a dtype name, a list of ints, a bin), so _flat holds.
+        return _numpy_array(obj[b"kind"], obj[b"data"], obj[b"type"], obj[b"shape"])
     value = _decode_map(obj, shared_refs)
     if value is not obj and not _flat(obj):
         raise _Unsure("nested values in an array map")
