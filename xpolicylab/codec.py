@@ -316,6 +316,8 @@ class _Reader:
             out = self.cur[self.pos:end]
             self.pos = end
             return out
+        if n > self.remaining():  # before allocating what a forged length (of a string) asks for
+            raise _invalid("truncated message")
         out = bytearray(n)
         self.readinto(memoryview(out))
         return out
@@ -477,8 +479,6 @@ def _read(r: _Reader, depth: int) -> Any:
 
 
 def _str(r: _Reader, n: int) -> str:
-    if n > r.remaining():  # before ``take`` allocates what a forged length asks for
-        raise _invalid("truncated message")
     try:
         return bytes(r.take(n)).decode("utf-8")
     except UnicodeDecodeError:
@@ -621,16 +621,20 @@ def _shallow(value: Any, depth: int = 0) -> bool:
 
 
 def _fast_decode(fragments: Sequence[bytes | bytearray | memoryview], shared_refs: bool) -> Any:
-    """``decode`` through msgpack's C unpacker, for a message of at most ``FAST_DECODE_MAX`` bytes.
+    """``decode`` through msgpack's C unpacker, for a message of at most ``FAST_DECODE_MAX`` bytes in one fragment.
 
     Raises (anything) where it cannot vouch for giving exactly ``decode``'s result: large binaries (the Python
     decoder returns them as views, ``_bin``), ext types, non-string keys, invalid UTF-8, long containers,
-    nesting near ``MAX_DEPTH``, and every malformed message.
+    nesting near ``MAX_DEPTH``, and every malformed message. A message in several fragments is not joined: our
+    transport sends everything up to ``transport.FRAGMENT`` (= ``FAST_DECODE_MAX``) in one unless it holds large
+    arrays, which the fast path refuses anyway, and other peers send whole messages.
     """
-    total = sum(len(f) for f in fragments)
+    if len(fragments) != 1:
+        raise _Unsure("fragments")
+    data = fragments[0]
+    total = memoryview(data).nbytes
     if not 0 < total <= FAST_DECODE_MAX:
         raise _Unsure("size")
-    data = fragments[0] if len(fragments) == 1 else b"".join(fragments)
     value = msgpack.unpackb(
         data, raw=False, strict_map_key=True, object_pairs_hook=_FAST_HOOKS[shared_refs], ext_hook=_refuse_ext,
         max_bin_len=LARGE_BIN - 1, max_str_len=total, max_array_len=FAST_MAX_LEN, max_map_len=FAST_MAX_LEN,

@@ -284,8 +284,9 @@ def test_fragments_and_buffer_types():
     wire = codec.encode(SAMPLE)  # the image is large: views of the fragment, so the Python path keeps it
     assert not check(wire) and not check(codec.encode_chunks(SAMPLE))
     small = codec.encode({k: v for k, v in SAMPLE.items() if k != "image"})
-    for data in (small, bytearray(small), memoryview(small), [small[:10], small[10:]], [b"", small, b""]):
+    for data in (small, bytearray(small), memoryview(small), [small]):
         assert check(data)
+    assert not check([small[:10], small[10:]]) and not check([b"", small])  # fragments: not joined, same result
     assert not check(b"\xc0" * (codec.FAST_DECODE_MAX + 1))  # above the size limit: trailing bytes, exact error
 
 
