@@ -18,6 +18,11 @@ them as WebSocket fragments, one per array; decoding walks the received fragment
 array where it arrived in one fragment (no copy), else copies it once into a recycled buffer. The bytes on the
 wire are exactly what ``msgpack`` would write.
 
+The other way round, a batch of small observations (arrays in shared memory) is tens of thousands of small
+items, where a Python loop costs ~3 us each: such messages go through msgpack's C extension first
+(``_fast_encode``, ``_fast_decode``), which take only what they can write or read exactly as the paths above
+(same bytes, same values and types) and hand everything else to them, every error included.
+
 A third map, ``{b"xpl_shm": True, b"segment": name, b"offset": n, b"type": dtype.str, b"shape": [...]}``, stands
 for an array that a client on the server's host placed in shared memory (``SharedArray``, see ``xpolicylab.shm``);
 only a decoder asked for it (``shared_refs=True``) accepts one, and nothing else writes one.
