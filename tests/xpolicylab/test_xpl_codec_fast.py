@@ -236,7 +236,7 @@ def test_nesting_around_the_depth_limit():
 
 
 def test_malformed_inputs_of_the_other_tests():
-    cases = [v for v in REFUSED.values()] + [data for data, _ in MALFORMED.values()]
+    cases = [*REFUSED.values(), *(data for data, _ in MALFORMED.values())]
     assert len(cases) > 40
     for data in cases:
         check(data)
