@@ -110,9 +110,16 @@ def test_streams_and_merged_modes_are_asked_for_by_name_only():
 
 
 def test_graph_mode_names_are_checked_on_any_machine_and_ignored_under_jax():
-    from dojo.backends.mjx.cache import GRAPH_MODES, graph_mode
+    import jax
+    from dojo.backends.mjx.cache import GRAPH_MODES, graph_mode, warp_installed
 
-    assert graph_mode(None, "warp") is None and graph_mode("none", "jax") is None
+    assert graph_mode("none", "jax") is None and graph_mode(None, "jax") is None
+    if warp_installed() and jax.default_backend() == "cpu":  # Warp's CPU device: plain launches, whatever was asked
+        import warp as wp
+
+        assert graph_mode(None, "warp") is graph_mode("warp_staged", "warp") is wp.JaxCallableGraphMode.NONE
+    elif warp_installed():
+        assert graph_mode(None, "warp") is None  # MJX's own default on a GPU
     with pytest.raises(ValueError, match=r"unknown backend.graph_mode 'warpp'; choose one of .*'warp_staged'"):
         graph_mode("warpp", "jax")
     assert GRAPH_MODES[0] == "none"
