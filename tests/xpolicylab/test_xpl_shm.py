@@ -172,6 +172,19 @@ def test_bad_references_get_errors_naming_the_fault_and_the_connection_keeps_wor
     assert np.array_equal(model.kept[-1]["images"]["head"], np.arange(16, dtype=np.uint8).reshape(4, 4))
 
 
+def _falls_back_to_the_socket(url: str, client_bytes: list[int], why: str) -> None:
+    """`auto` connects and sends the images through the socket; `on` refuses to connect, saying `why`."""
+    with PolicyClient(url) as client:
+        assert not client.uses_shared_memory
+        client_bytes.clear()
+        assert client.infer(big_obs(0)).shape == (4, 14)
+        assert sum(client_bytes) > 3 * WIDTH * HEIGHT * 3
+    client = PolicyClient(url, shared_memory="on")
+    with pytest.raises(ConnectionError, match=why):
+        client.connect()
+    client.close()
+
+
 def test_a_peer_that_is_not_loopback_is_refused_and_clients_fall_back(monkeypatch, test_segment, client_bytes):
     monkeypatch.setattr(ServerConnection, "remote_address", property(lambda self: ("10.1.2.3", 40000)))
     with serving() as srv:
@@ -182,29 +195,14 @@ def test_a_peer_that_is_not_loopback_is_refused_and_clients_fall_back(monkeypatc
             assert "only from a loopback peer, not from 10.1.2.3" in reply.payload["message"]
             ws.send(b"".join(encode_frame(Frame(MessageType.INFER, {"observation": big_obs(0)}))))
             assert decode_frame(ws.recv(timeout=10)).message_type is MessageType.INFER_RESULT
-        with PolicyClient(srv.url) as client:  # auto: the probe failed, so the socket
-            assert not client.uses_shared_memory
-            client_bytes.clear()
-            assert client.infer(big_obs(0)).shape == (4, 14)
-            assert sum(client_bytes) > 3 * WIDTH * HEIGHT * 3
-        client = PolicyClient(srv.url, shared_memory="on")
-        with pytest.raises(ConnectionError, match="loopback peer"):
-            client.connect()
-        client.close()
+        _falls_back_to_the_socket(srv.url, client_bytes, "loopback peer")  # the probe failed
 
 
 def test_auto_uses_the_socket_with_a_server_that_does_not_advertise_it(client_bytes):
     with serving(shared_memory=False) as srv:
-        with PolicyClient(srv.url) as client:
+        with PolicyClient(srv.url, shared_memory="off") as client:
             assert "shared_memory" not in client.server_info["capabilities"]  # as before the option existed
-            assert not client.uses_shared_memory
-            client_bytes.clear()
-            assert client.infer(big_obs(0)).shape == (4, 14)
-            assert sum(client_bytes) > 3 * WIDTH * HEIGHT * 3
-        client = PolicyClient(srv.url, shared_memory="on")
-        with pytest.raises(ConnectionError, match="does not advertise capabilities.shared_memory"):
-            client.connect()
-        client.close()
+        _falls_back_to_the_socket(srv.url, client_bytes, "does not advertise capabilities.shared_memory")
         with connect(srv.url, compression=None, max_size=None) as ws:  # and references sent anyway are refused
             ws.send(_ref_frame(codec.SharedArray("xpl_0_x", 0, np.dtype(np.uint8), (16,)), "m-1"))
             assert "shared_memory=false" in decode_frame(ws.recv(timeout=10)).payload["message"]
