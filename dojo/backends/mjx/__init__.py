@@ -49,11 +49,12 @@ def make(options: BackendOptions) -> MjxBackend:
 
     from dojo.backends.mjx.backend import MjxBackend
 
+    impl = options.settings.get("impl")
     if jax.default_backend() == "cpu":
         logging.getLogger(__name__).warning(
-            "backend=mjx on a CPU: expect minutes of compilation and seconds per step (every contact candidate is "
-            "simulated); backend=mujoco is the CPU backend")
-    impl = options.settings.get("impl")
+            "backend=mjx on a CPU: %s; backend=mujoco is the CPU backend",
+            "MuJoCo Warp on Warp's CPU device, for checks: a second or more per step" if str(impl) == "warp" else
+            "expect minutes of compilation and seconds per step (every contact candidate is simulated)")
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
