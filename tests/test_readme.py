@@ -208,6 +208,7 @@ def test_readme_quick_start_runs_as_written_from_a_fresh_clone(tmp_path: Path) -
 def test_every_dojo_command_in_the_readme_parses() -> None:
     """Commands outside the quick start (GPU, long jobs) are not run here; their overrides must still compose."""
     from dojo.bench.ray_bench import split_arguments
+    from dojo.bench.served_bench import OWN_KEYS as SERVED_KEYS
     from dojo.cli.main import COMMANDS, _jobs_flag, _what_word
     from dojo.cli.hydra_app import _register_spec_groups, check_overrides, overrides_of
 
@@ -221,6 +222,8 @@ def test_every_dojo_command_in_the_readme_parses() -> None:
                 continue
             if words[1:3] == ["bench", "ray"]:  # its own keys, then the overrides of the `dojo run` it times
                 words = ["dojo", "run", *split_arguments(words[3:])[1]]
+            elif words[1:3] == ["bench", "served"]:
+                words = ["dojo", "run", *split_arguments(words[3:], SERVED_KEYS)[1]]
             assert words[1] in COMMANDS, command
             if words[1] not in hydra_commands:
                 continue

@@ -40,11 +40,12 @@ class BenchConfig:
 
 
 @contextmanager
-def spawned_server(protocol: str, timeout_s: float = 60.0) -> Iterator[str]:
-    """Run ``python -m xpolicylab.serve policy=zero`` on a free loopback port; yield its URL."""
+def spawned_server(protocol: str, timeout_s: float = 60.0, options: Sequence[str] = ()) -> Iterator[str]:
+    """Run ``python -m xpolicylab.serve policy=zero`` (and ``options``, ``key=value``) on a free loopback port;
+    yield its URL."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"protocol={protocol}", "host=127.0.0.1",
-         "port=0", "log_level=warning"], stdout=subprocess.PIPE, text=True)
+         "port=0", "log_level=warning", *options], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
         deadline = time.monotonic() + timeout_s

@@ -42,10 +42,10 @@ def bench_ray_main(argv: list[str]) -> int:
     return 0
 
 
-def split_arguments(argv: list[str]) -> tuple[dict[str, str], list[str]]:
-    """The bench's own keys (`workers`, `repeats`), and the `dojo run` overrides."""
-    own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] in OWN_KEYS and "=" in a}
-    return own, [a for a in argv if a.split("=", 1)[0] not in OWN_KEYS]
+def split_arguments(argv: list[str], keys: tuple[str, ...] = OWN_KEYS) -> tuple[dict[str, str], list[str]]:
+    """A bench's own keys (here `workers`, `repeats`), and the `dojo run` overrides."""
+    own = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] in keys and "=" in a}
+    return own, [a for a in argv if a.split("=", 1)[0] not in keys]
 
 
 def bench_ray(overrides: list[str], workers: list[int], repeats: int = 1) -> dict[str, Any]:

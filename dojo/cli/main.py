@@ -81,13 +81,17 @@ def _policy(argv: list[str]) -> int:
 
 def _bench(argv: list[str]) -> int:
     """`dojo bench policy ...` is XPolicyLab's link benchmark; `dojo bench ray ...` times `dojo run` over Ray
-    workers (its other arguments are the run's); `sim` and `render` are Hydra-configured."""
+    workers and `dojo bench served ...` against a served policy, socket against shared memory (their other
+    arguments are the run's); `sim` and `render` are Hydra-configured."""
     if argv and argv[0] == "policy":
         from xpolicylab.cli import bench_main
         return bench_main(argv[1:])
     if argv and argv[0] == "ray":
         from dojo.bench.ray_bench import bench_ray_main
         return bench_ray_main(argv[1:])
+    if argv and argv[0] == "served":
+        from dojo.bench.served_bench import bench_served_main
+        return bench_served_main(argv[1:])
     return _hydra("bench", "bench_task")(_what_word(argv))
 
 
@@ -130,7 +134,8 @@ COMMANDS: dict[str, Command] = {
                    "dojo run suite=robodojo_sim_mini policy.url=ws://127.0.0.1:19000", _hydra("run", "run_task")),
     "collect": Command("Record demonstrations of a task as HDF5 episodes and a LeRobot v3.0 dataset.",
                        "dojo collect task=stack_blocks n=100 policy=oracle", _hydra("collect", "collect_task")),
-    "bench": Command("Measure simulation, rendering, policy-link or Ray scaling throughput (one JSON line).",
+    "bench": Command("Measure simulation, rendering, policy-link, served end-to-end or Ray scaling throughput (one "
+                     "JSON line).",
                      "dojo bench sim backend=mujoco num_envs=32 steps=200", _bench),
     "report": Command("Write the JSON and HTML report (leaderboard) of one or more runs.",
                       "dojo report outputs/robodojo_sim_mini/zero outputs/robodojo_sim_mini/random", _report),

@@ -60,8 +60,9 @@ def choose_impl(requested: str | None = None) -> str:
 
     `warp` asked for on a machine without an NVIDIA GPU runs MuJoCo Warp's kernels on Warp's CPU device: the same
     engine, cameras and contact pool as on the GPU, so that their code paths (and render parity with MuJoCo) can be
-    checked on any machine; `auto` never picks it there. Choosing `warp` also quiets Warp's per-module "load on device ... took" lines, which it prints to stdout by
-    default: `dojo bench` prints exactly one JSON line there (our own log says how long compilation took).
+    checked on any machine; `auto` never picks it there. Choosing `warp` also quiets Warp's per-module "load on
+    device ... took" lines, which it prints to stdout by default: `dojo bench` prints exactly one JSON line there
+    (our own log says how long compilation took).
     """
     if requested in (None, "", "auto"):
         chosen = "warp" if warp_available() else "jax"

@@ -1,0 +1,45 @@
+"""`dojo bench served`: `dojo run` against a served zero policy, socket and shared memory, in one JSON line."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from dojo.bench.served_bench import steady_rates
+
+
+def test_steady_rate_runs_between_the_first_and_last_episode_ends():
+    events = [{"event": "progress", "elapsed_s": 1.0, "interactions": 10},
+              {"event": "episode", "elapsed_s": 4.0, "interactions": 100},
+              {"event": "episode", "elapsed_s": 6.0, "interactions": 300},
+              {"event": "summary", "done": 2, "resumed": 0, "elapsed_s": 6.5, "interactions": 300,
+               "interactions_per_s": 46.15}]
+    rates = steady_rates(events)
+    assert rates["steady_interactions_per_s"] == 100.0 and rates["first_episode_end_s"] == 4.0
+    assert rates["episodes"] == 2 and rates["interactions_per_s"] == 46.15
+    together = [events[1], {**events[1], "interactions": 150}, events[3]]  # one wave: no span to time
+    assert steady_rates(together)["steady_interactions_per_s"] is None
+
+
+def test_both_modes_run_the_same_episodes_and_say_which_link_they_used(tmp_path):
+    """160x160 images (75 KiB) are over the 64 KiB from which arrays go through shared memory."""
+    horizons = tmp_path / "horizons.json"
+    horizons.write_text(json.dumps({"format": "robodojo-horizons/1", "tasks": {"insert_tubes": {"demo_lengths": [8]}}}))
+    done = subprocess.run(
+        [sys.executable, "-m", "dojo.cli.main", "bench", "served", "width=160", "height=160", "backend=mujoco",
+         "suite=robodojo_sim_mini", "tasks=[insert_tubes]", "episodes=4", "num_envs=2", f"horizons={horizons}",
+         f"plans={tmp_path / 'plans'}"], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "served" and report["images"] == "3x160x160" and report["same_results"] is True
+    off, on = report["runs"]["off"], report["runs"]["on"]
+    assert "through the socket" in off["link"] and "through shared memory" in on["link"]
+    assert off["episodes"] == on["episodes"] == 4 and off["interactions"] == on["interactions"] > 0
+    assert report["shared_over_socket"] > 0
+
+
+def test_bad_arguments_exit_2_with_the_usage():
+    done = subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "served", "shared_memory=maybe"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "usage: dojo bench served" in done.stderr
