@@ -6,4 +6,3 @@ from dojo.backends.gl_platform import choose_gl_platform
 # `python -m dojo.backends.<...>` imports this package first, and would otherwise get MuJoCo's default (GLFW, which
 # fails headless with "gladLoadGL error"). The CLI has chosen already; a platform the user set is kept.
 choose_gl_platform()
-
