@@ -6,8 +6,9 @@ policy server is) once per `shared_memory` mode, and runs the same `dojo run` co
 `policy=remote` pointed at that server) into a fresh results store, reading the run's `progress=jsonl` lines. The
 figure is environment steps per second between the first and the last episode ends: the steady rate, without
 start-up, plan compilation and the compiling first tick, so give a run several waves of episodes (`episodes` a few
-times `num_envs`). It also reports each run's overall rate and first-tick wait, and whether every run recorded the
-same episodes (the zero policy and the backends are deterministic: a difference is a bug).
+times `num_envs`). It also reports each run's overall rate, first episode end and where its loop's time went
+(load, policy, backend steps, resets), and whether every run recorded the same episodes (the zero policy and the
+backends are deterministic: a difference is a bug).
 
     dojo bench served backend=mujoco tasks=[insert_tubes] episodes=6 num_envs=2 width=64 height=64
     dojo bench served backend=mjx tasks=[insert_tubes] episodes=1536 num_envs=512 width=224 height=224  # GPU
@@ -88,7 +89,8 @@ def served_run(overrides: list[str], url: str, mode: str, store: Path) -> dict[s
     events = [json.loads(line) for line in done.stdout.splitlines() if line.startswith('{"event"')]
     with ResultsStore(store, readonly=True) as results:
         rows = {r.key: (r.success, r.score, r.steps, r.failure_reason) for r in results.rows()}
-    return {"shared_memory": mode, "link": _link_line(done.stderr), **steady_rates(events), "rows": rows}
+    return {"shared_memory": mode, "link": _line(done.stderr, "policy link:"), **steady_rates(events),
+            "time_split": _line(done.stderr, "where the loop's"), "rows": rows}
 
 
 def steady_rates(events: list[dict[str, Any]]) -> dict[str, Any]:
@@ -105,6 +107,7 @@ def steady_rates(events: list[dict[str, Any]]) -> dict[str, Any]:
             "steady_interactions_per_s": None if steady is None else round(steady, 2)}
 
 
-def _link_line(stderr: str) -> str | None:
-    """What the run said about its policy link (socket or shared memory), to show the mode took effect."""
-    return next((line.strip() for line in stderr.splitlines() if line.startswith("policy link:")), None)
+def _line(stderr: str, start: str) -> str | None:
+    """The run's log line that starts so: its policy link (socket or shared memory, to show the mode took effect)
+    and where its loop's time went."""
+    return next((line.strip() for line in stderr.splitlines() if line.startswith(start)), None)

@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
-from collections import deque
-from collections.abc import Sequence
+from collections import Counter, deque
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -42,6 +44,8 @@ from dojo.compiler.plan import Plan
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
 from dojo.evaluation.policy_link import PolicyLink
 from dojo.evaluation.recorder import SlotRecorder
+
+log = logging.getLogger(__name__)
 
 TIMEOUT = "timeout"
 POLICY_ERROR = "policy_error"
@@ -84,6 +88,31 @@ def run_id_for(identity: dict[str, Any]) -> str:
     return f"{identity.get('suite', 'run')}-{identity.get('policy', 'policy')}-{digest[:12]}"
 
 
+class TimeSplit:
+    """Wall seconds of a run's loop by phase, for one closing log line: which of the policy, the backend's steps
+    and resets or the loop's own bookkeeping a run waits on is the first question when it is slow."""
+
+    PHASES = ("load", "policy", "backend steps", "resets and records")
+
+    def __init__(self) -> None:
+        self.seconds: Counter[str] = Counter()
+        self._start = time.perf_counter()
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - start
+
+    def line(self) -> str:
+        total = time.perf_counter() - self._start
+        parts = [f"{name} {self.seconds[name]:.1f} s" for name in self.PHASES]
+        rest = total - sum(self.seconds[name] for name in self.PHASES)
+        return f"where the loop's {total:.1f} s went: {', '.join(parts)}, the rest {rest:.1f} s"
+
+
 def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
              store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
              episode_timeout_s: float | None = None,
@@ -116,10 +145,15 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     slots: dict[int, _Slot] = {i: _Slot(item, plan_of(item), time.monotonic()) for i, item in enumerate(first)}
     recorders = {i: recorder_factory() for i in slots} if recorder_factory else {}
     ran = 0
+    split = TimeSplit()
 
     def finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
         """Record ended episodes (durably, before anything else happens to their slots), then refill the slots
         from the queue or retire them."""
+        with split.phase("resets and records"):
+            _finish(ended, last_obs)
+
+    def _finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
         nonlocal ran
         now = time.monotonic()
         rows = []
@@ -150,15 +184,17 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     try:
         for i, rec in recorders.items():
             rec.start(slots[i].item, slots[i].plan)
-        backend.load([s.plan for s in slots.values()])
-        obs = dict(zip(slots, backend.reset(list(slots))))
-        policy.reset(list(slots))
-        backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
+        with split.phase("load"):  # compiling included: the first tick of a batched backend may follow in a step
+            backend.load([s.plan for s in slots.values()])
+            obs = dict(zip(slots, backend.reset(list(slots))))
+            policy.reset(list(slots))
+            backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
         while slots:
             need = [i for i, s in slots.items() if len(s.chunk) == 0]
             if need:
                 try:
-                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
+                    with split.phase("policy"):
+                        chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
                 except ProtocolError as err:
                     if err.code != ErrorCode.INFER_FAILED:
                         raise  # the link itself failed: stop, and resume these episodes later
@@ -174,7 +210,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                     recorders[i].add(obs[i], actions[k])
             # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
             observe = ids if recorders else [i for i in ids if len(slots[i].chunk) == 0]
-            result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
+            with split.phase("backend steps"):
+                result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
             progress.interactions(len(ids))
             now = time.monotonic()
             ended = []
@@ -195,6 +232,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         for rec in recorders.values():
             rec.discard()  # only episodes still in flight have files open
         backend.close()
+        log.info(split.line())
     return ran
 
 

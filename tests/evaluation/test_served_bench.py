@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 from dojo.bench.served_bench import steady_rates
+from dojo.evaluation.evaluate import TimeSplit
 
 
 def test_steady_rate_runs_between_the_first_and_last_episode_ends():
@@ -22,6 +23,17 @@ def test_steady_rate_runs_between_the_first_and_last_episode_ends():
     assert steady_rates(together)["steady_interactions_per_s"] is None
 
 
+def test_time_split_adds_phases_and_leaves_the_rest():
+    split = TimeSplit()
+    with split.phase("policy"):
+        pass
+    with split.phase("policy"):
+        pass
+    line = split.line()
+    assert line.startswith("where the loop's ") and "policy 0.0 s" in line and line.endswith("s")
+    assert set(split.seconds) == {"policy"}
+
+
 def test_both_modes_run_the_same_episodes_and_say_which_link_they_used(tmp_path):
     """160x160 images (75 KiB) are over the 64 KiB from which arrays go through shared memory."""
     horizons = tmp_path / "horizons.json"
@@ -35,6 +47,7 @@ def test_both_modes_run_the_same_episodes_and_say_which_link_they_used(tmp_path)
     assert report["benchmark"] == "served" and report["images"] == "3x160x160" and report["same_results"] is True
     off, on = report["runs"]["off"], report["runs"]["on"]
     assert "through the socket" in off["link"] and "through shared memory" in on["link"]
+    assert all(f"{phase} " in off["time_split"] for phase in ("policy", "backend steps", "resets and records"))
     assert off["episodes"] == on["episodes"] == 4 and off["interactions"] == on["interactions"] > 0
     assert report["shared_over_socket"] > 0
 
