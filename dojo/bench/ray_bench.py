@@ -77,13 +77,20 @@ def bench_ray(overrides: list[str], workers: list[int], repeats: int = 1) -> dic
             "same_results": all(r["rows"] == runs[0]["rows"] for r in runs)}
 
 
-def _timed_run(overrides: list[str], workers: int, address: str, store: Path) -> dict[str, Any]:
-    """One `dojo run` on the cluster at `address`: its summary and its episodes."""
-    cmd = [sys.executable, "-m", "dojo.cli.main", "run", *overrides, "launcher=ray", f"launcher.address={address}",
-           f"launcher.workers={workers}", f"results={store}", "progress=jsonl"]
+def dojo_run(args: list[str]) -> subprocess.CompletedProcess[str]:
+    """`dojo run <args> progress=jsonl` in a process of its own (as a user starts it); raises with the end of its
+    stderr when it fails."""
+    cmd = [sys.executable, "-m", "dojo.cli.main", "run", *args, "progress=jsonl"]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    return done
+
+
+def _timed_run(overrides: list[str], workers: int, address: str, store: Path) -> dict[str, Any]:
+    """One `dojo run` on the cluster at `address`: its summary and its episodes."""
+    done = dojo_run([*overrides, "launcher=ray", f"launcher.address={address}", f"launcher.workers={workers}",
+                     f"results={store}"])
     summary = next(json.loads(line) for line in done.stdout.splitlines() if line.startswith('{"event": "summary"'))
     with ResultsStore(store, readonly=True) as results:
         rows = {r.key: (r.success, r.score, r.steps, r.stage_times, r.failure_reason) for r in results.rows()}

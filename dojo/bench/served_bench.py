@@ -17,7 +17,6 @@ backends are deterministic: a difference is a bug).
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -25,7 +24,7 @@ from typing import Any
 
 from xpolicylab.bench import spawned_server
 
-from dojo.bench.ray_bench import split_arguments
+from dojo.bench.ray_bench import dojo_run, split_arguments
 from dojo.evaluation.results_store import ResultsStore
 
 USAGE = ("usage: dojo bench served [shared_memory=off,on] [width=224] [height=224] "
@@ -81,11 +80,8 @@ def bench_served(overrides: list[str], modes: list[str], cameras: list[str], wid
 
 def served_run(overrides: list[str], url: str, mode: str, store: Path) -> dict[str, Any]:
     """One `dojo run` against the server at `url` with `policy.shared_memory=mode`: its rates and its episodes."""
-    cmd = [sys.executable, "-m", "dojo.cli.main", "run", *overrides, "policy=remote", f"policy.url={url}",
-           f"policy.shared_memory={mode}", f"results={store}", "progress=jsonl"]
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+    done = dojo_run([*overrides, "policy=remote", f"policy.url={url}", f"policy.shared_memory={mode}",
+                     f"results={store}"])
     events = [json.loads(line) for line in done.stdout.splitlines() if line.startswith('{"event"')]
     with ResultsStore(store, readonly=True) as results:
         rows = {r.key: (r.success, r.score, r.steps, r.failure_reason) for r in results.rows()}
