@@ -150,36 +150,34 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     def finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
         """Record ended episodes (durably, before anything else happens to their slots), then refill the slots
         from the queue or retire them."""
-        with split.phase("resets and records"):
-            _finish(ended, last_obs)
-
-    def _finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
         nonlocal ran
-        now = time.monotonic()
-        rows = []
-        for i, success, reason in ended:
-            video = recorders[i].finish(last_obs[i], success)[0] if recorders else None
-            rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video, backend.name))
-        store.add_many(rows)
-        for row in rows:
-            progress.episode_finished(row)
-        ran += len(rows)
-        ids = [i for i, _, _ in ended]
-        if more is not None and len(todo) < len(ids):
-            todo.extend(more(len(ids) - len(todo)))
-        refill = ids[:len(todo)]
-        for i in ids[len(refill):]:
-            del slots[i]
-        if refill:
-            items = [todo.popleft() for _ in refill]
-            for i, item in zip(refill, items):
-                slots[i] = _Slot(item, plan_of(item), time.monotonic())
-                if recorders:
-                    recorders[i].start(item, slots[i].plan)
-            for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
-                obs[i] = first_obs
-            policy.reset(refill)
-            backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
+        with split.phase("resets and records"):
+            now = time.monotonic()
+            rows = []
+            for i, success, reason in ended:
+                video = recorders[i].finish(last_obs[i], success)[0] if recorders else None
+                rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video,
+                                 backend.name))
+            store.add_many(rows)
+            for row in rows:
+                progress.episode_finished(row)
+            ran += len(rows)
+            ids = [i for i, _, _ in ended]
+            if more is not None and len(todo) < len(ids):
+                todo.extend(more(len(ids) - len(todo)))
+            refill = ids[:len(todo)]
+            for i in ids[len(refill):]:
+                del slots[i]
+            if refill:
+                items = [todo.popleft() for _ in refill]
+                for i, item in zip(refill, items):
+                    slots[i] = _Slot(item, plan_of(item), time.monotonic())
+                    if recorders:
+                        recorders[i].start(item, slots[i].plan)
+                for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
+                    obs[i] = first_obs
+                policy.reset(refill)
+                backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
 
     try:
         for i, rec in recorders.items():

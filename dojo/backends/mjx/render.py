@@ -38,6 +38,7 @@ import mujoco
 import numpy as np
 
 from dojo.backends.mujoco.render import ensure_headless_gl, open_renderer
+from dojo.backends.mjx.cache import warp_installed
 
 log = logging.getLogger(__name__)
 Array = Any
@@ -161,9 +162,7 @@ def fixed_light_poses(xpos: Array, xmat: Array, light_bodyid: np.ndarray, light_
 
 def warp_renderer_available() -> tuple[bool, str]:
     """Whether the batched renderer can run here, and if not, why (for the fallback's log line)."""
-    from mujoco.mjx import warp as mjx_warp
-
-    if not mjx_warp.WARP_INSTALLED:
+    if not warp_installed():
         return False, "warp-lang is not installed"
     gpus = [d for d in jax.devices() if d.platform in ("gpu", "cuda")]
     if not gpus:
@@ -359,9 +358,7 @@ def make_renderer(models: Sequence[mujoco.MjModel], nworld: int, config: RenderC
     without a GPU it renders on Warp's CPU device (the same ray tracer, for checks).
     """
     if impl == "warp":
-        from mujoco.mjx import warp as mjx_warp
-
-        if not mjx_warp.WARP_INSTALLED:
+        if not warp_installed():
             raise RuntimeError("the warp renderer was asked for but cannot run: warp-lang is not installed")
         return WarpRenderer(models[0], nworld, config)
     ok, why = warp_renderer_available()
