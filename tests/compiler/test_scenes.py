@@ -114,6 +114,18 @@ def test_compile_suite_writes_an_index_and_reuses_plans(tmp_path: Path) -> None:
     assert {e["setting"] for e in index["plans"]} == {"standard", "random"}  # generalization: split in two
 
 
+def test_protocol_suite_holds_every_scored_simulation_task(library: SpecLibrary) -> None:
+    """A task written but left out of robodojo_sim is never on the leaderboard: the seven Precision tasks after
+    deposit_coin and insert_tubes were, until this test."""
+    taxonomy = library.get("taxonomy", "robodojo")
+    unscored = {d["id"] for d in taxonomy.data["dimensions"] if d.get("scored") is False}
+    simulation = {t.id for t in library.of_kind("task") if t.package == "builtin"
+                  and t.data.get("scored_by", "program") == "program" and t.data["dimension"] not in unscored}
+    in_suite = {task.id for task, _ in library.suite_tasks(library.get("suite", "robodojo_sim"))}
+    assert len(simulation) >= 23
+    assert simulation == in_suite
+
+
 def test_protocol_episode_counts(library: SpecLibrary) -> None:
     suite = library.get("suite", "robodojo_sim")
     episodes = suite_episodes(library, suite)
