@@ -2,6 +2,12 @@
 
 They are served like any other policy, so they double as baselines (a zero policy must not solve a task) and
 as fixtures for the checker, the bench and the runtime's tests.
+
+``zero`` and ``random`` are array arithmetic on the robot's own joint state, so in joint mode they also offer that
+rule as array code (``device_rule``: ``HoldRule``, ``JitterRule``), written over an array module ``xp`` (numpy or
+jax.numpy, the way ``dojo.backends.actions`` is): a batched simulator runs it beside its physics (the mjx backend,
+inside its tick) instead of sending every observation out and every action back. Nothing here imports a
+simulator or JAX; the simulator brings ``xp`` and the uniform numbers.
 """
 
 from __future__ import annotations
@@ -10,13 +16,66 @@ import importlib
 import importlib.util
 import sys
 from collections.abc import Hashable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from xpolicylab.embodiments import ACTION_MODES, Embodiment, get_embodiment
 from xpolicylab.model import Model, Observation, PolicyMetadata, as_model
+
+
+@dataclass(frozen=True)
+class HoldRule:
+    """``zero``'s joint-mode rule: every row of a chunk is the joint pose observed when the chunk started.
+
+    The protocol of a chunk rule (what a simulator running it reads): a chunk has ``chunk_size`` rows and starts
+    from the observed ``joint_pos`` (14 wide: arm joints and gripper opening per arm); its row r is ``row(xp,
+    pose, uniform)``, where ``uniform`` holds ``draws`` fresh uniform [0, 1) numbers for that row from a generator
+    seeded with ``seed``. ``matches_host``: running it gives the numbers the policy's own ``get_action_batch``
+    gives, so a run's results do not depend on where it ran.
+    """
+
+    chunk_size: int
+    draws: ClassVar[int] = 0
+    seed: ClassVar[int] = 0
+    matches_host: ClassVar[bool] = True
+
+    def row(self, xp: Any, pose: Any, uniform: Any) -> Any:
+        """The held pose itself (``pose`` [..., 14]; ``uniform`` is empty)."""
+        return pose
+
+
+@dataclass(frozen=True)
+class JitterRule:
+    """``random``'s joint-mode rule (see ``HoldRule`` for the protocol): the held pose plus uniform noise in
+    [-max_delta, max_delta] per value, clipped to the embodiment's joint bounds ``lo``, ``hi``, and each gripper
+    uniform in [0, 1], from ``len(lo) + 2`` draws per row. Not ``matches_host``: a simulator draws from its own
+    generator (JAX's, from ``seed``), which cannot repeat numpy's stream, so its numbers differ from the host's
+    while being as reproducible."""
+
+    chunk_size: int
+    seed: int
+    max_delta: float
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
+    matches_host: ClassVar[bool] = False
+
+    @property
+    def draws(self) -> int:
+        return len(self.lo) + 2
+
+    def row(self, xp: Any, pose: Any, uniform: Any) -> Any:
+        """``pose`` [..., D] and ``uniform`` [..., D + 2] -> actions [..., D]. The noise is ``-max_delta + 2
+        max_delta u`` computed in the draws' precision, which is how numpy's ``uniform(-max_delta, max_delta)``
+        computes it: the host policy gives the same numbers when it passes its own draws."""
+        d = pose.shape[-1]
+        noise = (-self.max_delta + (2 * self.max_delta) * uniform[..., :d]).astype(pose.dtype)
+        moved = xp.clip(pose + noise, xp.asarray(self.lo, pose.dtype), xp.asarray(self.hi, pose.dtype))
+        arms = xp.reshape(moved, moved.shape[:-1] + (2, d // 2))  # per arm: joints, then its gripper
+        grips = uniform[..., d:].astype(pose.dtype)
+        return xp.reshape(xp.concatenate([arms[..., :-1], grips[..., None]], axis=-1), moved.shape)
 
 
 class _ReferencePolicy(Model):
@@ -81,6 +140,10 @@ class ZeroPolicy(_ReferencePolicy):
 
     policy_name = "zero"
 
+    def device_rule(self) -> HoldRule | None:
+        """The rule as array code (module docstring), in joint mode only."""
+        return HoldRule(self.chunk_size) if self.action_mode == "joint" else None
+
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
         poses = np.stack([self.current_pose(self._obs[e]) for e in env_ids])
         return np.repeat(poses[:, None, :], self.chunk_size, axis=1)
@@ -105,21 +168,25 @@ class RandomPolicy(_ReferencePolicy):
         super().reset()
         self.rng = np.random.default_rng(self.seed)
 
+    def device_rule(self) -> JitterRule | None:
+        """The rule as array code (module docstring), in joint mode only: the ee mode's noise moves positions in
+        the end-effector frame, which only the host path knows how to do."""
+        if self.action_mode != "joint":
+            return None
+        lo, hi = self.embodiment.joint_bounds()
+        return JitterRule(self.chunk_size, self.seed, self.max_delta, tuple(map(float, lo)), tuple(map(float, hi)))
+
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
         poses = np.stack([self.current_pose(self._obs[e]) for e in env_ids])
         b, d, k = poses.shape[0], poses.shape[1], self.chunk_size
         out = np.repeat(poses[:, None, :], k, axis=1)
-        if self.action_mode == "joint":
-            out += self.rng.uniform(-self.max_delta, self.max_delta, size=(b, k, d)).astype(np.float32)
-            lo, hi = self.embodiment.joint_bounds()
-            out = np.clip(out, lo, hi)
-            grippers = list(self.embodiment.gripper_indices())
-        else:
-            for arm in range(2):
-                base = 8 * arm
-                out[:, :, base:base + 3] += self.rng.uniform(-self.max_delta, self.max_delta, (b, k, 3))
-            grippers = [7, 15]
-        out[:, :, grippers] = self.rng.uniform(0.0, 1.0, size=(b, k, 2))
+        if self.action_mode == "joint":  # the noise first, then the grippers: numpy's stream as it always was
+            uniform = np.concatenate([self.rng.random((b, k, d)), self.rng.random((b, k, 2))], axis=-1)
+            return self.device_rule().row(np, out, uniform)
+        for arm in range(2):
+            base = 8 * arm
+            out[:, :, base:base + 3] += self.rng.uniform(-self.max_delta, self.max_delta, (b, k, 3))
+        out[:, :, [7, 15]] = self.rng.uniform(0.0, 1.0, size=(b, k, 2))
         return out.astype(np.float32)
 
 
