@@ -14,6 +14,10 @@ Observations follow DESIGN section 4 / xpolicylab: `{"instruction": str, "images
 (only the cameras the backend was asked for), "state": {"joint_pos" [14], "joint_vel" [14], "ee_pose" [2, 7],
 "gripper" [2]} (float32), "meta": {"task", "episode", "step", "embodiment", "control_hz"}}`. `meta.episode` is
 the plan's scene seed; the runtime, which numbers episodes, may overwrite it.
+
+A backend that steps on a device may also run a policy itself (`attach_rule`, then `step_with_rule`): a policy
+whose whole rule is array arithmetic on the robot's joint state (a `ChunkRule`) then needs no observation copied
+out and no action copied back per step. Host backends do not (their package does not set `RUNS_POLICY_RULES`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Protocol, Self
 
 import numpy as np
 
@@ -67,6 +71,20 @@ class StepResult:
     counters: list[dict[str, int]] = field(default_factory=list)
 
 
+class ChunkRule(Protocol):
+    """A policy's joint-mode rule as array code (xpolicylab's `HoldRule`, `JitterRule`): chunks of `chunk_size`
+    rows, each chunk held from the `joint_pos` observed when it starts; row r of a chunk is `row(xp, pose,
+    uniform)` with `uniform` `draws` fresh uniform [0, 1) numbers for that row, from a generator seeded with
+    `seed`. `matches_host`: the numbers equal those the policy gives when asked on the host."""
+
+    chunk_size: int
+    draws: int
+    seed: int
+    matches_host: bool
+
+    def row(self, xp: Any, pose: Any, uniform: Any) -> Any: ...
+
+
 class Backend(ABC):
     """A simulator (or robot) that runs plans in `num_envs` slots. Use as a context manager or call close()."""
 
@@ -94,6 +112,15 @@ class Backend(ABC):
         """Apply actions [n, D] (one row per id, `mode` one of actions.ACTION_MODES) for one control step.
         Camera images are rendered only for the slots in `observe` (all when None): a policy executing an action
         chunk looks only when its chunk runs out, and rendering is the dominant cost on a CPU."""
+
+    def attach_rule(self, rule: ChunkRule) -> None:
+        """Run `rule` as the policy of every slot from the next `load` on (`step_with_rule`); only backends whose
+        package sets `RUNS_POLICY_RULES` can."""
+        raise NotImplementedError(f"backend {self.name} runs no policy rule inside its step")
+
+    def step_with_rule(self, env_ids: Sequence[int] | None = None) -> StepResult:
+        """`step` with the attached rule's actions, made where the state is: the result's `obs` is empty."""
+        raise NotImplementedError(f"backend {self.name} runs no policy rule inside its step")
 
     def prefetch(self, plans: Sequence[Any]) -> None:
         """A hint: these plans will be loaded soon (the runtime's next queued episodes); a backend may prepare

@@ -3,8 +3,9 @@
 A backend is one subpackage of `dojo.backends` whose `__init__` defines `make(options: BackendOptions) -> Backend`
 and `unsupported(features, settings) -> {feature: reason}` (which of a plan's `requires` it cannot run), plus one
 Hydra config file (`dojo/cli/config/backend/<name>.yaml`) whose keys other than `name` reach `make` as
-`options.settings`. The runtime names a backend by its config; this module imports the package only when asked,
-so choosing `mujoco` never imports JAX.
+`options.settings`; one that implements `Backend.attach_rule` also sets `RUNS_POLICY_RULES = True`. The runtime
+names a backend by its config; this module imports the package only when asked, so choosing `mujoco` never
+imports JAX.
 """
 
 from __future__ import annotations
@@ -62,6 +63,15 @@ def unsupported_features(name: str, features: Sequence[str], settings: Mapping[s
     if answer is None:
         raise ValueError(f"dojo.backends.{name} defines no unsupported(features, settings): it is not a backend")
     return dict(answer(list(features), settings))
+
+
+def runs_policy_rules(name: str) -> bool:
+    """Whether backend `name` can run a policy's rule inside its own step (`Backend.attach_rule`), answered
+    without building it, so that a run knows before it starts where its policy will run: the package says so with
+    `RUNS_POLICY_RULES = True`. Unknown names (a test's stand-in backend) cannot."""
+    if name not in available():
+        return False
+    return bool(getattr(importlib.import_module(f"dojo.backends.{name}"), "RUNS_POLICY_RULES", False))
 
 
 def backend_factory(name: str, options: BackendOptions) -> Callable[[], Backend]:

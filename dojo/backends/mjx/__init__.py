@@ -32,6 +32,9 @@ with contextlib.redirect_stdout(io.StringIO()) as _printed:
 if _printed.getvalue().strip():
     logging.getLogger(__name__).debug("mujoco.mjx: %s", _printed.getvalue().strip())
 
+RUNS_POLICY_RULES = True
+"""`MjxBackend.attach_rule`: a policy's joint-mode rule runs inside the tick (`dojo.backends.registry`)."""
+
 
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`

@@ -16,6 +16,14 @@ and the program (`program_step`) with the plans' params gathered by member, once
 per task; a bucket merged across tasks, `merge=True`, has several, see `lanes`); proprioception as in the CPU
 backend's `RobotIndex.proprioception`.
 
+A policy in the tick (`attach_rule`, then `step_with_rule`). A policy whose rule is array arithmetic on the robot's
+joint state (the built-in `zero` and `random`, xpolicylab's `HoldRule` and `JitterRule`) runs in `_DeviceHooks.act`:
+its chunk state (the pose the last tick observed, the pose the current chunk holds, the rows taken since the reset)
+is per-env carried state beside the predicate memory, re-initialised on reset as `policy.reset` starts a fresh chunk
+on the host, and each tick's actions come from it. No action crosses to the device and no observation back: a step
+fetches only what a result row needs (`RESULT_OUTPUTS`). Random draws come from JAX's generator keyed by the rule's
+seed, the episode's plan and its step, so an episode's draws do not depend on its slot, the batch or the order.
+
 Implementations. `impl='warp'` (MuJoCo Warp: an NVIDIA GPU with mujoco-warp installed) is what `auto` chooses
 where it can run (`cache.choose_impl`), `impl='jax'` elsewhere; the backend logs which. The two keep contacts
 differently: `jax` has fixed rows per environment (`Data.contact`), Warp one pool for the whole batch whose rows
@@ -27,6 +35,7 @@ MJX's `jax` kinematics under either implementation.
 from __future__ import annotations
 
 import gc
+import hashlib
 import logging
 import time
 from collections.abc import Sequence
@@ -40,8 +49,8 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends import actions as A
-from dojo.backends.base import (END_NONFINITE, Backend, Observation, StepResult, checked_actions, end_after_step,
-                                envelope, refuse_ended, resolve_ids)
+from dojo.backends.base import (END_NONFINITE, Backend, ChunkRule, Observation, StepResult, checked_actions,
+                                end_after_step, envelope, refuse_ended, resolve_ids)
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import init_memory, program_step
 from dojo.backends.predicate_state import gather_state
@@ -62,21 +71,26 @@ log = logging.getLogger(__name__)
 
 
 MODES = ("joint", "delta_joint", "ee", "delta_ee")
-DELTA_JOINT, EE, DELTA_EE = (MODES.index(m) for m in ("delta_joint", "ee", "delta_ee"))  # ids the tick compares
+JOINT, DELTA_JOINT, EE, DELTA_EE = (MODES.index(m) for m in MODES)  # ids the tick compares
 """Action modes by the id the tick receives per env."""
 INPUT_WIDTH = 2 * A.EE_PER_ARM
 """Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
+RESULT_OUTPUTS = ("success", "score", "stage_step", "terms", "clipped", "nonfinite")
+"""The tick's outputs a step with a rule in the tick fetches: a result row's, without the proprioception."""
 
 
 class _DeviceHooks(Hooks):
-    """Actions, predicates and proprioception inside the tick (see module docstring)."""
+    """Actions, predicates and proprioception inside the tick, and with a rule the policy (see module docstring)."""
 
     def __init__(self, programs: dict[str, BucketPrograms], robots: dict[str, RobotIndex], impl: str,
-                 ik: bool = True):
+                 ik: bool = True, rule: ChunkRule | None = None, plans: dict[str, np.ndarray] | None = None):
         """`ik`: trace the ee modes' batched IK (`_ee_targets`). Without it the tick takes joint modes only: the IK
         is most of the tick's XLA program under `warp` (one bucket of stack_blocks: 668k of the ~750k characters
-        that control and observe lower to, 9.4 s of the 11 s they take to compile on a CPU)."""
+        that control and observe lower to, 9.4 s of the 11 s they take to compile on a CPU).
+        `rule`: the policy run in `act` (`MjxBackend.attach_rule`); `plans`: per bucket, one uint32 per member
+        naming its plan (`_plan_word`), which keys the rule's draws."""
         self.programs, self.robots, self.impl, self.ik = programs, robots, impl, ik
+        self.rule, self.plans = rule, plans or {}
 
     def refresh(self, m: Tree, d: Tree) -> Tree:
         """What the predicates and proprioception read, at the state the sub-steps reached: body and site poses
@@ -90,8 +104,43 @@ class _DeviceHooks(Hooks):
         return d.tree_replace({"_impl.ten_velocity": d._impl.ten_J @ d.qvel})
 
     def init_extra(self, arr: BucketArrays) -> Tree:
-        """One predicate memory per lane of the bucket (`lanes`), each for the whole batch."""
-        return tuple(init_memory(jnp, lane.layout, arr.size) for lane in self.programs[arr.bucket.key].lanes)
+        """One predicate memory per lane of the bucket (`lanes`), each for the whole batch, and with a rule its
+        chunk state (`_chunk_state`)."""
+        memories = tuple(init_memory(jnp, lane.layout, arr.size) for lane in self.programs[arr.bucket.key].lanes)
+        if self.rule is None:
+            return memories, ()
+        joints = self.robots[arr.bucket.key].limits.joints_per_arm
+        return memories, _chunk_state(arr.size, A.action_dim("joint", joints))
+
+    def act(self, arr: BucketArrays, extra: Tree, member: jax.Array, inputs: Tree, stepping: jax.Array
+            ) -> tuple[Tree, Tree]:
+        """With a rule, every env's joint action is row `t mod chunk_size` of its chunk, a chunk holding the pose
+        the last tick observed from its first row on; an env takes a row only when it steps, as the host loop takes
+        one per step. Without a rule, the host's inputs."""
+        if self.rule is None:
+            return inputs, extra
+        memories, state = extra
+        start = state["t"] % self.rule.chunk_size == 0
+        held = jnp.where(start[:, None], state["pose"], state["held"])
+        row = self.rule.row(jnp, held, self._uniform(arr, member, state["t"]))
+        actions = jnp.zeros((row.shape[0], INPUT_WIDTH), row.dtype).at[:, :row.shape[1]].set(row)
+        state = {"pose": state["pose"], "held": held, "t": state["t"] + stepping.astype(jnp.int32),
+                 "nonfinite": A.nonfinite(jnp, row)}
+        return (actions, jnp.full(row.shape[0], JOINT, jnp.int32)), (memories, state)
+
+    def _uniform(self, arr: BucketArrays, member: jax.Array, t: jax.Array) -> jax.Array:
+        """Each env's `rule.draws` uniform [0, 1) numbers for row `t` of its episode, from JAX's generator keyed by
+        the rule's seed, the episode's plan and t: an episode's draws depend on nothing else."""
+        if not self.rule.draws:
+            return jnp.zeros((member.shape[0], 0), jnp.float32)
+        base = jax.random.key(self.rule.seed)
+        plans = jnp.asarray(self.plans[arr.bucket.key])[member]
+
+        def draw(plan: jax.Array, row: jax.Array) -> jax.Array:
+            key = jax.random.fold_in(jax.random.fold_in(base, plan), row)
+            return jax.random.uniform(key, (self.rule.draws,), jnp.float32)
+
+        return jax.vmap(draw)(plans, t)
 
     def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
         actions, mode = inputs
@@ -111,9 +160,13 @@ class _DeviceHooks(Hooks):
         ctrl = data.ctrl.at[:, robot.actuators].set(A.to_ctrl(jnp, q, grip, robot.limits.max_width))
         return ctrl, clipped
 
-    def observe(self, arr: BucketArrays, m: Tree, data: Tree, memory: Tree, member: jax.Array, reset: jax.Array,
+    def observe(self, arr: BucketArrays, m: Tree, data: Tree, extra: Tree, member: jax.Array, reset: jax.Array,
                 stepping: jax.Array, clipped: Tree, steps: jax.Array) -> tuple[Tree, Tree]:
+        """The predicates' new memories and outputs, and the proprioception; with a rule, its state's `pose` is
+        what this tick observed (the next chunk starts from it) and `nonfinite` goes out for the host to end those
+        episodes as `step` does."""
         programs, robot = self.programs[arr.bucket.key], self.robots[arr.bucket.key]
+        memory, chunk = extra
         if self.impl == "warp":  # the pool is sorted into worlds below; no per-environment rows to read
             geom1 = geom2 = jnp.zeros((arr.size, 0), jnp.int32)
             dist = jnp.zeros((arr.size, 0), data.qpos.dtype)
@@ -135,7 +188,26 @@ class _DeviceHooks(Hooks):
                 lane_memory))
             outputs.append(out)
         chosen = select_lanes(jnp, jnp.asarray(programs.member_lane)[member], outputs)
-        return tuple(memories), {**chosen, "clipped": clipped, **_proprioception(robot, data)}
+        proprioception = _proprioception(robot, data)
+        if self.rule is None:
+            return (tuple(memories), ()), {**chosen, "clipped": clipped, **proprioception}
+        chunk = {**chunk, "pose": proprioception["joint_pos"]}
+        return (tuple(memories), chunk), {**chosen, "clipped": clipped, "nonfinite": chunk["nonfinite"],
+                                          **proprioception}
+
+
+def _chunk_state(n: int, width: int) -> dict[str, jax.Array]:
+    """A rule's per-env state as a reset leaves it: `pose`, the joint pose the last tick observed (the reset tick
+    writes the episode's first); `held`, the pose the current chunk holds; `t`, rows taken since the reset (a chunk
+    starts at every multiple of its size, the first at once, as the host asks a policy just reset); `nonfinite`,
+    whether the last row had a NaN or an infinity."""
+    return {"pose": jnp.zeros((n, width), jnp.float32), "held": jnp.zeros((n, width), jnp.float32),
+            "t": jnp.zeros(n, jnp.int32), "nonfinite": jnp.zeros(n, bool)}
+
+
+def _plan_word(plan_hash: str) -> int:
+    """A plan's hash as the uint32 that keys a rule's draws for episodes of it (stable across runs and hosts)."""
+    return int.from_bytes(hashlib.sha256(plan_hash.encode()).digest()[:4], "little")
 
 
 def _jax_kinematics(arr: BucketArrays, m: Tree, qpos: jax.Array) -> tuple[Tree, Tree, Tree]:
@@ -272,12 +344,22 @@ class MjxBackend(Backend):
         self._rows: list[list[int | None]] = []  # per bucket: row -> slot
         self._members: list[np.ndarray] = []
         self._joints_per_arm = 0
+        self._rule: ChunkRule | None = None
         self.placement = Placement.over(local_devices(devices), self.impl)
         log.info("mjx backend: environments split over %s", self.placement.describe())
 
     @property
     def num_envs(self) -> int:
         return len(self._slots)
+
+    def attach_rule(self, rule: ChunkRule) -> None:
+        """Run `rule` as every slot's policy inside the tick (module docstring): `step_with_rule` steps with it, and
+        `step` is refused. Only before `load`: the rule is traced into the tick `load` compiles, which serves the
+        whole run as one program. A tick that could take either the rule's actions or the host's would need the
+        host's as inputs every step, the copy a rule in the tick is there to avoid."""
+        if self._engine is not None:
+            raise RuntimeError("attach_rule before load: the rule is traced into the tick that load compiles")
+        self._rule = rule
 
     def preload(self, plans: Sequence[Any]) -> None:
         """Make plans known before `load`, so that refilling slots with them later compiles nothing."""
@@ -314,8 +396,11 @@ class MjxBackend(Backend):
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: bucket_programs(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
-                             self.impl, ik=any(MODES.index(m) in (EE, DELTA_EE) for m in self.action_modes))
-        example = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
+                             self.impl, ik=any(MODES.index(m) in (EE, DELTA_EE) for m in self.action_modes),
+                             rule=self._rule,
+                             plans={b.key: np.asarray([_plan_word(m.plan.hash) for m in b.members], np.uint32)
+                                    for b in self._buckets})
+        example = self._idle_inputs()
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
@@ -358,25 +443,38 @@ class MjxBackend(Backend):
                 self._rows[k][row] = int(i)
                 self._members[k][row] = self._member[slot.plan.hash][1]
             self._slots[i] = _Slot(slot.plan, slot.bucket, slot.row)
-        resets = [np.zeros(len(r), bool) for r in self._rows]
-        for i in ids:
-            resets[self._slots[i].bucket][self._slots[i].row] = True
-        outputs = self._tick(resets, [np.zeros(len(r), bool) for r in self._rows],
-                             [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows],
-                             [np.zeros(len(r), np.int32) for r in self._rows])
+        outputs = self._tick(self._flags([self._slots[i] for i in ids]), self._flags([]), self._idle_inputs())
         return self._observations(ids, outputs)
 
-    def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], actions: list[np.ndarray],
-              modes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+    def _flags(self, slots: Sequence[_Slot]) -> list[np.ndarray]:
+        """Per bucket, a bool per row: True at the rows of `slots`."""
+        flags = [np.zeros(len(r), bool) for r in self._rows]
+        for slot in slots:
+            flags[slot.bucket][slot.row] = True
+        return flags
+
+    def _idle_inputs(self) -> list[Tree]:
+        """Per bucket, the tick's inputs when the host sends no actions (resets): zero action rows, or nothing at
+        all when a rule makes the actions in the tick."""
+        if self._rule is not None:
+            return [() for _ in self._rows]
+        return [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
+
+    def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], inputs: list[Tree],
+              names: Sequence[str] | None = None) -> list[dict[str, np.ndarray]]:
+        """One engine tick; its outputs copied to the host, only those in `names` when given."""
         steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
                  for rows in self._rows]
-        out = self._engine.tick(self._members, resets, stepping, list(zip(actions, modes)), steps)
+        out = self._engine.tick(self._members, resets, stepping, inputs, steps)
         if self.impl == "warp":
             self._engine.check_overflow()
-        return jax.device_get(out)
+        return jax.device_get(list(out) if names is None else [{n: o[n] for n in names} for o in out])
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
              observe: Sequence[int] | None = None) -> StepResult:
+        if self._rule is not None:
+            raise ValueError("a policy rule is attached to this mjx backend: its tick makes the actions and takes "
+                             "none from the host (step_with_rule)")
         if mode not in self.action_modes:
             raise ValueError(f"this mjx backend was built for action modes {list(self.action_modes)}, not '{mode}' "
                              "(its tick compiles only those; give the policy's mode in BackendOptions.action_modes)")
@@ -387,14 +485,31 @@ class MjxBackend(Backend):
         dim = actions.shape[1]
         bad = A.nonfinite(np, actions)
         rows_a = [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows]
-        stepping = [np.zeros(len(r), bool) for r in self._rows]
         modes = [np.full(len(r), MODES.index(mode), np.int32) for r in self._rows]
         for k, slot in enumerate(slots):
             if not bad[k]:
                 rows_a[slot.bucket][slot.row, :dim] = actions[k]
-                stepping[slot.bucket][slot.row] = True
-        outputs = self._tick([np.zeros(len(r), bool) for r in self._rows], stepping, rows_a, modes)
-        clipped = np.zeros(ids.size, np.int32)
+        outputs = self._tick(self._flags([]), self._flags([s for s, b in zip(slots, bad) if not b]),
+                             list(zip(rows_a, modes)))
+        clipped = self._advance(slots, bad, outputs)
+        return self._result(ids, slots, self._observations(ids, outputs, observe=observe), clipped)
+
+    def step_with_rule(self, env_ids: Sequence[int] | None = None) -> StepResult:
+        """One control step of slots `env_ids` with the attached rule's actions (`attach_rule`), made in the tick
+        from the state there. Only `RESULT_OUTPUTS` come back to the host, and the result has no observations."""
+        if self._rule is None:
+            raise ValueError("no policy rule is attached to this mjx backend: attach_rule before load, or step")
+        ids = resolve_ids(env_ids, self.num_envs)
+        slots = [self._slots[i] for i in ids]
+        refuse_ended(ids, slots)
+        outputs = self._tick(self._flags([]), self._flags(slots), self._idle_inputs(), names=RESULT_OUTPUTS)
+        bad = np.asarray([bool(outputs[s.bucket]["nonfinite"][s.row]) for s in slots], bool)
+        return self._result(ids, slots, [], self._advance(slots, bad, outputs))
+
+    def _advance(self, slots: Sequence[_Slot], bad: np.ndarray, outputs: list[dict[str, np.ndarray]]) -> np.ndarray:
+        """Each slot's episode after a tick, from its row of `outputs`; a slot whose action had a NaN or an
+        infinity (`bad`) ends there, its score and steps as before. Returns the elements clipped per slot."""
+        clipped = np.zeros(len(slots), np.int32)
         for k, slot in enumerate(slots):
             if bad[k]:
                 slot.done, slot.end_reason, slot.success = True, END_NONFINITE, False
@@ -410,8 +525,13 @@ class MjxBackend(Backend):
             slot.terms = dict(zip(layout.term_names, map(bool, out["terms"])))
             slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
             slot.done = slot.end_reason is not None
+        return clipped
+
+    @staticmethod
+    def _result(ids: np.ndarray, slots: Sequence[_Slot], obs: list[Observation], clipped: np.ndarray
+                ) -> StepResult:
         return StepResult(
-            env_ids=ids, obs=self._observations(ids, outputs, observe=observe),
+            env_ids=ids, obs=obs,
             success=np.asarray([s.success for s in slots], bool),
             score=np.asarray([s.score for s in slots], np.float32),
             done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),

@@ -161,9 +161,11 @@ class Hooks:
     """What a tick does besides physics; the defaults are physics only (the bench), the backend adds actions,
     predicates and observations. All methods are traced inside the tick, per bucket, batched over its envs.
 
-    `control` maps the tick's per-env inputs to actuator controls [B, nu] (default: the inputs are controls);
     `init_extra` is the per-env state the hooks carry between ticks (reset rows are re-initialised from it);
-    `observe` runs after the physics, on up-to-date positions, and returns the new extra state and the outputs.
+    `act` may make the tick's inputs from that state instead of taking them from the host (a policy running in the
+    tick; default: the inputs as given); `control` maps the inputs to actuator controls [B, nu] (default: the inputs
+    are controls); `observe` runs after the physics, on up-to-date positions, and returns the new extra state and
+    the outputs.
     """
 
     def refresh(self, m: Tree, d: Tree) -> Tree:
@@ -173,6 +175,11 @@ class Hooks:
 
     def init_extra(self, arr: BucketArrays) -> Tree:
         return ()
+
+    def act(self, arr: BucketArrays, extra: Tree, member: jax.Array, inputs: Tree, stepping: jax.Array
+            ) -> tuple[Tree, Tree]:
+        """(the inputs `control` gets, the new extra state), from the extra state as the resets left it."""
+        return inputs, extra
 
     def control(self, arr: BucketArrays, m: Tree, data: Tree, inputs: Tree) -> tuple[jax.Array, Tree]:
         return inputs, ()
@@ -197,6 +204,7 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     data = _select(reset, init, data)
     fresh = hooks.init_extra(arr)
     extra = jax.tree.map(lambda f, e: jnp.where(reset.reshape((-1,) + (1,) * (e.ndim - 1)), f, e), fresh, extra)
+    inputs, extra = hooks.act(arr, extra, member, inputs, stepping)
     ctrl, aux = hooks.control(arr, m, data, inputs)
     driven = data.replace(ctrl=jnp.where(stepping[:, None], ctrl.astype(data.ctrl.dtype), data.ctrl))
     step = jax.vmap(mjx.step, in_axes=(arr.in_axes, 0))
