@@ -16,6 +16,12 @@ Launchers: the loop does not care where its episodes come from or where its rows
 `more` the loop pulls further episodes as its slots free up, so that a Ray worker (`dojo.launch.ray_launcher`)
 runs this same loop on episodes it pulls from the driver and streams its rows back, instead of a copy of it.
 
+A policy in the backend (`on_device`): a policy that offers its rule as array code (`PolicyLink.device_rule`, the
+built-in `zero` and `random` in joint mode), on a backend that can run it inside its own step (`mjx`), in a run that
+records nothing and sends the policy no images, is attached to the backend before it loads, and the loop then steps
+with it (`Backend.step_with_rule`): no chunk is asked for, no observation is built per step, no action is sent.
+`policy.on_device` (`policy_link.ON_DEVICE`) says whether to (`policy_link.device_rule_for`).
+
 Recording (optional): with a `recorder_factory`, every slot gets a recorder that sees each observation and the
 action taken from it, and whose video path goes into the episode's row. The backend may then render cameras the
 policy did not ask for; the policy is shown only its own (`metadata.cameras`).
@@ -36,13 +42,13 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from dojo.backends.base import Backend
+from dojo.backends.base import Backend, StepResult
 from xpolicylab.errors import ErrorCode, ProtocolError
 from dojo.compiler.episodes import PlannedEpisode
 from dojo.compiler.plan import Plan
 
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
-from dojo.evaluation.policy_link import PolicyLink
+from dojo.evaluation.policy_link import PolicyLink, device_rule_for
 from dojo.evaluation.recorder import SlotRecorder
 
 log = logging.getLogger(__name__)
@@ -117,12 +123,13 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
              store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
              episode_timeout_s: float | None = None,
              recorder_factory: Callable[[], SlotRecorder] | None = None,
-             more: Callable[[int], list[PlannedEpisode]] | None = None) -> int:
+             more: Callable[[int], list[PlannedEpisode]] | None = None, on_device: Any = "off") -> int:
     """Run every queued episode not yet in the store for `run_id`; return how many were run now.
 
     `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
     ([] when there are none now): episodes are taken only when a slot can start them, so a worker of a launcher
-    never holds episodes that another, idle worker could be running."""
+    never holds episodes that another, idle worker could be running. `on_device` (auto | on | off): whether the
+    policy's rule runs inside the backend's step (module docstring)."""
     finished = store.finished(run_id)
     todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
     if more is not None and len(todo) < num_envs:
@@ -176,45 +183,67 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                         recorders[i].start(item, slots[i].plan)
                 for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
                     obs[i] = first_obs
-                policy.reset(refill)
+                if rule is None:
+                    policy.reset(refill)
                 backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
 
+    def host_step() -> StepResult | None:
+        """One step with the policy asked on the host for the slots whose chunks ran out (None: it failed on
+        them, and their episodes ended instead)."""
+        need = [i for i, s in slots.items() if len(s.chunk) == 0]
+        if need:
+            try:
+                with split.phase("policy"):
+                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
+            except ProtocolError as err:
+                if err.code != ErrorCode.INFER_FAILED:
+                    raise  # the link itself failed: stop, and resume these episodes later
+                finish([(i, False, f"{POLICY_ERROR}: {err}") for i in need], obs)  # the policy failed on them
+                return None
+            for i, chunk in zip(need, chunks):
+                slots[i].chunk = np.asarray(chunk, np.float32).reshape(-1, chunks.shape[-1])
+        ids = sorted(slots)
+        actions = np.stack([slots[i].chunk[0] for i in ids])
+        for k, i in enumerate(ids):
+            slots[i].chunk = slots[i].chunk[1:]
+            if recorders:
+                recorders[i].add(obs[i], actions[k])
+        # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
+        observe = ids if recorders else [i for i in ids if len(slots[i].chunk) == 0]
+        with split.phase("backend steps"):
+            result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
+        for k, i in enumerate(ids):
+            obs[i] = result.obs[k]
+        return result
+
+    def device_step() -> StepResult:
+        """One step with the policy's rule run by the backend, for every slot."""
+        with split.phase("backend steps"):
+            return backend.step_with_rule(sorted(slots))
+
     try:
+        rule = device_rule_for(policy, backend.name, recording=recorder_factory is not None, on_device=on_device)
+        if rule is not None:
+            backend.attach_rule(rule)
+            log.info("policy %s runs on the device: backend %s steps its rule itself (no observation out, no "
+                     "action in)", meta.name, backend.name)
         for i, rec in recorders.items():
             rec.start(slots[i].item, slots[i].plan)
         with split.phase("load"):  # compiling included: the first tick of a batched backend may follow in a step
             backend.load([s.plan for s in slots.values()])
             obs = dict(zip(slots, backend.reset(list(slots))))
-            policy.reset(list(slots))
+            if rule is None:
+                policy.reset(list(slots))
             backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
         while slots:
-            need = [i for i, s in slots.items() if len(s.chunk) == 0]
-            if need:
-                try:
-                    with split.phase("policy"):
-                        chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
-                except ProtocolError as err:
-                    if err.code != ErrorCode.INFER_FAILED:
-                        raise  # the link itself failed: stop, and resume these episodes later
-                    finish([(i, False, f"{POLICY_ERROR}: {err}") for i in need], obs)  # the policy failed on them
-                    continue
-                for i, chunk in zip(need, chunks):
-                    slots[i].chunk = np.asarray(chunk, np.float32).reshape(-1, chunks.shape[-1])
-            ids = sorted(slots)
-            actions = np.stack([slots[i].chunk[0] for i in ids])
-            for k, i in enumerate(ids):
-                slots[i].chunk = slots[i].chunk[1:]
-                if recorders:
-                    recorders[i].add(obs[i], actions[k])
-            # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
-            observe = ids if recorders else [i for i in ids if len(slots[i].chunk) == 0]
-            with split.phase("backend steps"):
-                result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
+            result = host_step() if rule is None else device_step()
+            if result is None:
+                continue
+            ids = sorted(slots)  # the slots just stepped, in the order of the result
             progress.interactions(len(ids))
             now = time.monotonic()
             ended = []
             for k, i in enumerate(ids):
-                obs[i] = result.obs[k]
                 slot = slots[i]
                 slot.score, slot.steps, slot.stage_times = float(result.score[k]), int(result.steps[k]), \
                     dict(result.stage_times[k])

@@ -3,7 +3,11 @@
 `dojo run policy=zero` needs no server: the reference policies are XPolicyLab `Model`s and are called directly,
 batched. `policy.url=ws://...` talks to any XPolicyLab or openpi server through the XPolicyLab client, which
 brings retries, receive deadlines, reconnects and, for a server on this host, images through shared memory
-(`policy.shared_memory`). Both give the loop the same three calls.
+(`policy.shared_memory`). Both give the loop the same calls.
+
+A policy whose rule is array arithmetic on the robot's joint state (the built-in `zero` and `random`, in joint mode)
+also offers it as a `ChunkRule` (`device_rule`), which a backend that steps on a device can run inside its own step
+(`Backend.attach_rule`): `policy.on_device` (`device_rule_for`) decides whether a run does.
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from dojo.backends.base import ChunkRule
+from dojo.backends.registry import runs_policy_rules
 from xpolicylab.model import Model, Observation, PolicyMetadata
 
 log = logging.getLogger(__name__)
@@ -33,6 +39,9 @@ class PolicyLink(Protocol):
     def close(self) -> None:
         """Release the connection or the model."""
 
+    def device_rule(self) -> ChunkRule | None:
+        """The policy's rule as array code a backend may run in its own step (None: ask `act`)."""
+
 
 class InProcessPolicy:
     """A `Model` called directly (its batched methods: one call for every environment that needs actions)."""
@@ -50,6 +59,11 @@ class InProcessPolicy:
 
     def close(self) -> None:
         pass
+
+    def device_rule(self) -> ChunkRule | None:
+        """The model's `device_rule()` where it has one (xpolicylab's `zero` and `random`)."""
+        offer = getattr(self.model, "device_rule", None)
+        return offer() if offer is not None else None
 
 
 class RemotePolicy:
@@ -72,6 +86,10 @@ class RemotePolicy:
 
     def close(self) -> None:
         self.client.close()
+
+    def device_rule(self) -> None:
+        """A served policy runs where it is served."""
+        return None
 
 
 PRIVILEGED_NOTE = "privileged reference: reads the simulator state, not a leaderboard entry"
@@ -101,6 +119,55 @@ def policy_config_for(cfg: dict[str, Any], worker: int) -> dict[str, Any]:
     return cfg
 
 
+ON_DEVICE = ("auto", "on", "off")
+"""`policy.on_device`: run the policy's rule inside the backend's step where possible (auto), or else fail (on), or
+never (off)."""
+
+
+def on_device_setting(value: Any) -> str:
+    """`policy.on_device` as one of ON_DEVICE (a YAML file reads `on` and `off` as booleans)."""
+    text = ("on" if value else "off") if isinstance(value, bool) else str(value)
+    if text not in ON_DEVICE:
+        raise ValueError(f"policy.on_device must be one of {', '.join(ON_DEVICE)}, got {value!r}")
+    return text
+
+
+def device_rule_for(policy: PolicyLink, backend: str, *, recording: bool, on_device: Any) -> ChunkRule | None:
+    """The rule backend `backend` (its registry name) runs inside its step for `policy` in a run (None: the
+    policy is asked for every chunk on the host), as `on_device` says (`ON_DEVICE`); with `on`, a ValueError
+    saying why it cannot. The run's log, its identity and its loop ask this same question."""
+    setting = on_device_setting(on_device)
+    if setting == "off":
+        return None
+    rule = policy.device_rule()
+    why = _why_on_the_host(policy.metadata, rule, backend, recording)
+    if why is None:
+        return rule
+    if setting == "on":
+        raise ValueError(f"policy.on_device=on, but {why}; policy.on_device=auto runs it on the host then")
+    return None
+
+
+def _why_on_the_host(meta: PolicyMetadata, rule: ChunkRule | None, backend: str, recording: bool) -> str | None:
+    """Why the policy must run on the host in this run (None: its rule can run in the backend's step)."""
+    if rule is None:
+        return (f"policy {meta.name} ({meta.action_mode} actions) has no rule a backend can run: only the built-in "
+                "zero and random policies do, with joint actions")
+    if meta.cameras:
+        return f"policy {meta.name} asks for images ({', '.join(meta.cameras)}), which only the host path sends"
+    if recording:
+        return "the run records its episodes, which needs every observation and action on the host"
+    if not runs_policy_rules(backend):
+        return f"backend {backend} runs no policy rule inside its step (it steps on the host)"
+    return None
+
+
+def policy_identity(cfg: dict[str, Any]) -> dict[str, Any]:
+    """A policy config as a run's identity holds it: without `on_device`, since where the policy runs changes no
+    result of a rule that `matches_host`; a run whose results it does change says so in its identity itself."""
+    return {k: v for k, v in cfg.items() if k != "on_device"}
+
+
 def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
     """The policy a run's config names: `url` set -> a server; otherwise a built-in or importable Model."""
     if cfg.get("url"):
@@ -108,6 +175,7 @@ def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
                             shared_memory=cfg.get("shared_memory", "auto"))
     from xpolicylab.policies import load_policy
 
-    options = {k: v for k, v in cfg.items() if k not in ("name", "url", "protocol", "token", "shared_memory")}
+    options = {k: v for k, v in cfg.items()
+               if k not in ("name", "url", "protocol", "token", "shared_memory", "on_device")}
     name = RUNTIME_POLICIES.get(str(cfg["name"]), str(cfg["name"]))
     return InProcessPolicy(load_policy(name, {"embodiment": embodiment, **options}))

@@ -1,0 +1,162 @@
+"""The built-in zero and random policies run inside the mjx backend's tick (`policy.on_device`): zero records what
+the host path records, bit for bit; random is reproducible from its seed; a slot refilled starts a fresh chunk.
+
+Real plans (the recording pack's six-step task, two 6-DoF arms) on MuJoCo Warp's CPU device: a backend loads in
+about 5 s and steps in about 0.8 s here. The chunk size (4) does not divide the horizon (6), so every episode
+starts a second chunk mid-way, and two slots for three episodes refill one of them.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from dojo.backends.registry import BackendOptions, make_backend
+from dojo.compiler.episodes import PlannedEpisode
+from dojo.compiler.spec_library import SpecLibrary
+from dojo.compiler.suite_compile import compile_suite
+from dojo.evaluation.episode import EpisodeResult
+from dojo.evaluation.evaluate import evaluate
+from dojo.evaluation.policy_link import open_policy
+from xpolicylab.policies import JitterRule, load_policy
+
+PACK = Path(__file__).resolve().parents[1] / "recording" / "pack"
+CHUNK = 4
+
+
+@pytest.fixture(scope="module")
+def queue(tmp_path_factory: pytest.TempPathFactory) -> list[PlannedEpisode]:
+    from dojo.backends.mjx.cache import warp_installed
+
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]'): MJX's jax implementation compiles for minutes")
+    library = SpecLibrary.load([PACK], strict=False)
+    suite = library.get("suite", "short_suite")
+    return list(compile_suite(library, suite, tmp_path_factory.mktemp("plans"), episodes=3).episodes)
+
+
+class _Rows:
+    """The loop's results store, in memory."""
+
+    def __init__(self) -> None:
+        self.rows: list[EpisodeResult] = []
+
+    def finished(self, run_id: str) -> set[Any]:
+        return set()
+
+    def add_many(self, results: Sequence[EpisodeResult]) -> int:
+        self.rows.extend(results)
+        return len(results)
+
+
+class _Quiet:
+    def episode_finished(self, row: EpisodeResult) -> None:
+        pass
+
+    def interactions(self, n: int) -> None:
+        pass
+
+
+class _Asked:
+    """A policy link that counts the chunks it was asked for."""
+
+    def __init__(self, link: Any) -> None:
+        self.link, self.metadata, self.chunks = link, link.metadata, 0
+
+    def reset(self, env_ids: Sequence[int]) -> None:
+        self.link.reset(env_ids)
+
+    def act(self, obs: Sequence[Any], env_ids: Sequence[int]) -> np.ndarray:
+        self.chunks += len(env_ids)
+        return self.link.act(obs, env_ids)
+
+    def device_rule(self) -> Any:
+        return self.link.device_rule()
+
+    def close(self) -> None:
+        self.link.close()
+
+
+def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, num_envs: int = 2,
+         known: list[PlannedEpisode] | None = None) -> tuple[dict[tuple, tuple], np.ndarray, int]:
+    """`dojo run`'s loop on the mjx backend, which knows the plans of `known` (default: the queue's): each
+    episode's result row (by key), the slots' final joint positions and how many chunks the policy was asked for."""
+    link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"))
+    options = BackendOptions(settings={"impl": "warp"}, action_modes=("joint",),
+                             plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue})
+    built = []
+
+    def factory() -> Any:
+        built.append(make_backend("mjx", options))
+        return built[-1]
+
+    store = _Rows()
+    evaluate(queue, factory, link, store, "run", num_envs=num_envs, progress=_Quiet(), on_device=on_device)
+    rows = {r.key: (r.success, r.score, r.steps, r.stage_times, r.failure_reason, r.success_terms)
+            for r in store.rows}
+    return rows, built[0].qpos(), link.chunks
+
+
+def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, caplog):
+    host, host_qpos, asked = _run(queue, {"name": "zero"}, "off")
+    with caplog.at_level(logging.INFO, logger="dojo.evaluation.evaluate"):
+        device, device_qpos, not_asked = _run(queue, {"name": "zero"}, "on")
+    assert len(host) == 3 and all(steps == 6 for _, _, steps, *_ in host.values())
+    assert device == host
+    np.testing.assert_array_equal(device_qpos, host_qpos)  # the arms held the same poses through every chunk
+    assert asked == 3 * 2 and not_asked == 0  # two chunks per episode on the host, none asked on the device
+    assert "policy zero runs on the device" in caplog.text
+
+
+def test_random_in_the_tick_is_reproducible_from_its_seed(queue):
+    first, first_qpos, asked = _run(queue[:2], {"name": "random", "seed": 3}, "on")
+    again, again_qpos, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on")
+    other, other_qpos, _ = _run(queue[:2], {"name": "random", "seed": 4}, "on")
+    assert asked == 0 and again == first
+    np.testing.assert_array_equal(again_qpos, first_qpos)
+    assert np.abs(other_qpos - first_qpos).max() > 1e-4  # another seed moved the arms otherwise
+
+
+def test_a_refilled_slot_starts_a_fresh_chunk(queue):
+    """An episode's draws and chunks restart with it: played in a slot that ran another episode first, it ends
+    exactly as in a fresh backend (a chunk or a draw counter carried over would move the arms otherwise)."""
+    after, after_qpos, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on", num_envs=1)
+    alone, alone_qpos, _ = _run(queue[1:2], {"name": "random", "seed": 3}, "on", num_envs=1, known=queue[:2])
+    assert after[queue[1].plan_hash, queue[1].eval_seed, queue[1].episode] == next(iter(alone.values()))
+    np.testing.assert_array_equal(after_qpos, alone_qpos)
+
+
+def test_the_rule_is_the_same_arithmetic_under_jax():
+    """What the tick traces (`jax.numpy`) is what the host computes (`numpy`): in bounds, grippers as drawn."""
+    import jax.numpy as jnp
+
+    rule = load_policy("random", {"max_delta": 0.3, "chunk_size": CHUNK}).device_rule()
+    assert isinstance(rule, JitterRule)
+    rng = np.random.default_rng(0)
+    lo, hi = np.asarray(rule.lo, np.float32), np.asarray(rule.hi, np.float32)
+    pose = rng.uniform(lo - 0.2, hi + 0.2, (256, len(lo))).astype(np.float32)  # some outside the bounds
+    uniform = rng.random((256, rule.draws)).astype(np.float32)
+    on_host = rule.row(np, pose, uniform)
+    traced = np.asarray(rule.row(jnp, jnp.asarray(pose), jnp.asarray(uniform)))
+    np.testing.assert_allclose(traced, on_host, rtol=0, atol=1e-6)
+    assert traced.dtype == np.float32 and np.all((traced >= lo) & (traced <= hi))
+    np.testing.assert_array_equal(traced[:, [6, 13]], uniform[:, -2:])
+
+
+def test_a_backend_with_a_rule_takes_no_actions_and_takes_it_only_before_load():
+    from dojo.backends.mjx.backend import MjxBackend
+
+    backend = MjxBackend(impl="jax", action_modes=("joint",))
+    backend.attach_rule(load_policy("zero", {}).device_rule())
+    with pytest.raises(ValueError, match="a policy rule is attached.*step_with_rule"):
+        backend.step(np.zeros((0, 14), np.float32))
+    backend._engine = object()  # as after load
+    with pytest.raises(RuntimeError, match="attach_rule before load"):
+        backend.attach_rule(load_policy("zero", {}).device_rule())
+    with pytest.raises(ValueError, match="no policy rule is attached"):
+        MjxBackend(impl="jax").step_with_rule()
