@@ -27,7 +27,8 @@ from dojo.backends.registry import factory_from_config
 from dojo.evaluation.camera_budget import budget_message, image_size, images_per_second
 from dojo.compiler.episodes import PlannedEpisode
 from dojo.evaluation.evaluate import evaluate, run_id_for
-from dojo.evaluation.policy_link import PRIVILEGED_NOTE, is_privileged, policy_config_for
+from dojo.evaluation.policy_link import (PRIVILEGED_NOTE, device_rule_for, is_privileged, policy_config_for,
+                                         policy_identity)
 from dojo.evaluation.recorder import EpisodeRecorder, record_cameras
 
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
@@ -113,13 +114,22 @@ def run_task(cfg: DictConfig) -> int:
     policy = open_policy(policy_config_for(policy_cfg, 0), embodiment)  # type: ignore[arg-type]
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     store_path = Path(cfg.results) if cfg.results else out_dir / "results.sqlite"
-    identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_cfg,
+    robot_cameras = Plan.load(queue[0].plan_path).cameras if queue and cfg.record != "none" else []
+    recorded = record_cameras(str(cfg.record), robot_cameras) if robot_cameras else ()
+    on_device = policy_cfg.get("on_device", "off")
+    try:  # a plan no backend runs, or policy.on_device=on where it cannot be, stops the run here
+        routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
+        changed = _rule_changes_results(policy, routes, bool(recorded), on_device)
+    except BaseException:
+        policy.close()
+        raise
+    identity = {"suite": suite.id, "policy": policy.metadata.name, "policy_config": policy_identity(policy_cfg),
                 "backend": cfg.backend.name, "seeds": seeds, "episodes": cfg.episodes, "hidden": bool(hidden)}
     if tasks is not None:  # only when set: the ids of runs of whole suites stay as they were
         identity["tasks"] = sorted(tasks)
+    if changed:
+        identity["policy_on_device"] = True
     run_id = run_id_for(identity)
-    robot_cameras = Plan.load(queue[0].plan_path).cameras if queue and cfg.record != "none" else []
-    recorded = record_cameras(str(cfg.record), robot_cameras) if robot_cameras else ()
     meta = policy.metadata
     cameras = tuple(meta.cameras) + tuple(c for c in recorded if c not in meta.cameras)
     width, height, size_warning = image_size(meta, cfg.width, cfg.height)
@@ -133,7 +143,6 @@ def run_task(cfg: DictConfig) -> int:
             if cfg.progress != "quiet":
                 _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id),
                                       timed_here=str(cfg.backend.name) == "mujoco")
-            routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
                 for backend, episodes in routes:
@@ -144,7 +153,7 @@ def run_task(cfg: DictConfig) -> int:
                     else:
                         evaluate(episodes, _backend_factory(backend, meta, cameras, (width, height), plan_paths),
                                  policy, store, run_id, num_envs=int(cfg.num_envs), progress=progress,
-                                 episode_timeout_s=timeout, recorder_factory=recorder_factory)
+                                 episode_timeout_s=timeout, recorder_factory=recorder_factory, on_device=on_device)
             rows = store.rows(run_id)
     finally:
         policy.close()
@@ -157,6 +166,18 @@ def run_task(cfg: DictConfig) -> int:
         write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
         print(f"report: {report_path} and {report_path.with_suffix('.html')}")
     return 0
+
+
+def _rule_changes_results(policy: Any, routes: list[tuple[dict[str, Any], list[Any]]], recording: bool,
+                          on_device: Any) -> bool:
+    """Whether the policy's rule runs inside a backend's step for some of the run's episodes and gives other
+    numbers there than on the host (`random`: JAX's generator, not numpy's). Such a run is another run than the
+    same command on the host path, so its identity says so; `zero`'s rule gives the host's numbers bit for bit,
+    so where it runs stays out of the identity, and `policy.on_device=on` fails here, before anything runs, when
+    a backend of the run cannot run the rule."""
+    rules = [device_rule_for(policy, str(backend["name"]), recording=recording, on_device=on_device)
+             for backend, _ in routes]
+    return any(rule is not None and not rule.matches_host for rule in rules)
 
 
 def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[PlannedEpisode], policy_cfg: dict[str, Any],

@@ -136,7 +136,7 @@ def collect_task(cfg: DictConfig) -> int:
     from dojo.compiler.taxonomy import taxonomy_of
 
     from dojo.evaluation.evaluate import evaluate
-    from dojo.evaluation.policy_link import open_policy
+    from dojo.evaluation.policy_link import open_policy, policy_identity
     from dojo.evaluation.progress import Progress
     from dojo.evaluation.results_store import ResultsStore
     from dojo.cli.run_cmd import DEFAULT_PLAN_CACHE
@@ -169,9 +169,10 @@ def collect_task(cfg: DictConfig) -> int:
     assert isinstance(policy_cfg, dict)
     policy = open_policy(policy_cfg, task.data["embodiment"])
     meta = policy.metadata
-    identity = {"collect": task.id, "policy": meta.name, "policy_config": policy_cfg, "setting": cfg.setting,
-                "seed_offset": int(cfg.seed_offset), "cameras": list(cfg.cameras), "width": int(cfg.width),
-                "height": int(cfg.height), "depth": bool(cfg.depth), "only_success": bool(cfg.only_success)}
+    identity = {"collect": task.id, "policy": meta.name, "policy_config": policy_identity(policy_cfg),
+                "setting": cfg.setting, "seed_offset": int(cfg.seed_offset), "cameras": list(cfg.cameras),
+                "width": int(cfg.width), "height": int(cfg.height), "depth": bool(cfg.depth),
+                "only_success": bool(cfg.only_success)}
     run_id = run_id_for({"suite": task.id, **identity})
 
     def recorder() -> SlotRecorder:

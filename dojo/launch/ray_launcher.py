@@ -275,7 +275,8 @@ class _ShardWorker:
             self._policy = open_policy(policy_config_for(self.job.policy, self.index), self.job.embodiment)
         return evaluate([], self.job.backend_for(self._paths), self._policy, self, self.job.run_id,
                         num_envs=self.job.num_envs, progress=self, episode_timeout_s=self.job.episode_timeout_s,
-                        recorder_factory=self.job.recorder_factory, more=self._pull)
+                        recorder_factory=self.job.recorder_factory, more=self._pull,
+                        on_device=self.job.policy.get("on_device", "off"))
 
     def close(self) -> None:
         if self._policy is not None:
