@@ -4,8 +4,8 @@ Layout. A bucket of B environments holds its `mjx.Data` batched along axis 0 and
 the bucket member (plan) it simulates. The member table (varying model fields and initial states, one row per
 plan) lives on the device; each tick gathers the rows of the current members and vmaps `mjx.step` over the data
 *and* those fields (`in_axes` 0 for the varying fields, None for the shared model). A tick applies resets, writes
-the controls, runs the plan's physics sub-steps (`n_substeps` per 25 Hz control step) in a `fori_loop`, and
-recomputes kinematics so that positions match the new state. All buckets of a tick are traced into one program,
+the controls, runs the plan's physics sub-steps (`n_substeps` per 25 Hz control step; under Warp as one call, see
+`substeps`), and recomputes kinematics so that positions match the new state. All buckets of a tick are traced into one program,
 so the device runs different tasks' batches concurrently instead of one after another.
 
 Continuous batching. Refilling an environment is "set its member index and its reset flag", both ordinary
@@ -35,6 +35,7 @@ from mujoco import mjx
 from dojo.backends.mjx.bucket import Bucket
 from dojo.backends.mjx.capture import run_settled
 from dojo.backends.mjx.sharding import Placement
+from dojo.backends.mjx.substeps import substeps
 
 log = logging.getLogger(__name__)
 Tree = Any
@@ -207,8 +208,7 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     inputs, extra = hooks.act(arr, extra, member, inputs, stepping)
     ctrl, aux = hooks.control(arr, m, data, inputs)
     driven = data.replace(ctrl=jnp.where(stepping[:, None], ctrl.astype(data.ctrl.dtype), data.ctrl))
-    step = jax.vmap(mjx.step, in_axes=(arr.in_axes, 0))
-    stepped = jax.lax.fori_loop(0, arr.bucket.n_substeps, lambda _, d: step(m, d), driven)
+    stepped = substeps(mx.impl.value, arr.bucket.n_substeps, arr.in_axes)(m, driven)
     data = _select(stepping, stepped, data)
     data = jax.vmap(hooks.refresh, in_axes=(arr.in_axes, 0))(m, data)
     extra, outputs = hooks.observe(arr, m, data, extra, member, reset, stepping, aux, steps)
