@@ -26,9 +26,13 @@ def _clutter(name: str, kind: str, x: float, size: float, y: float = 0.3) -> str
 
 def toy_plan(task: str = "toy", setting: str = "standard", seed: int = 0,
              clutter: tuple[str, ...] = (), block_size: float = 0.03, rgba: str = "0.8 0.1 0.1 1",
-             items: tuple[str, ...] = ()) -> Plan:
-    """A plan of a tiny scene: floor, a slider pushing a free box, optional free task items and clutter bodies."""
+             items: tuple[str, ...] = (), fixture_y: float | None = None) -> Plan:
+    """A plan of a tiny scene: floor, a slider pushing a free box, optional free task items and clutter bodies;
+    `fixture_y`: a wall welded to the world there (a fixture, such as a task's power strip)."""
     bodies = "".join(_clutter(f"item_{k}", kind, 0.3 - 0.15 * k, 0.025, y=-0.3) for k, kind in enumerate(items))
+    if fixture_y is not None:
+        bodies += (f'<body name="wall" pos="0.1 {fixture_y} 0.05">'
+                   '<geom name="wall/g0" type="box" size="0.2 0.02 0.05"/></body>')
     bodies += "".join(_clutter(f"clutter_{k}", kind, -0.3 + 0.15 * k, 0.02 + 0.005 * seed % 3)
                      for k, kind in enumerate(clutter))
     xml = f"""<mujoco model="{task}-{setting}-{seed}">

@@ -200,6 +200,8 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     init = data.replace(qpos=table["qpos"][member].astype(data.qpos.dtype),
                         qvel=table["qvel"][member].astype(data.qvel.dtype),
                         ctrl=table["ctrl"][member].astype(data.ctrl.dtype),
+                        geom_xpos=table["geom_xpos"][member].astype(data.geom_xpos.dtype),
+                        geom_xmat=table["geom_xmat"][member].astype(data.geom_xmat.dtype),
                         act=jnp.zeros_like(data.act), time=jnp.zeros_like(data.time),
                         qacc_warmstart=jnp.zeros_like(data.qacc_warmstart))
     data = _select(reset, init, data)

@@ -92,11 +92,26 @@ class Bucket:
         return tuple(sorted({m.plan.task for m in self.members}))
 
     def table(self) -> dict[str, np.ndarray]:
-        """Per-member values of the varying fields and the initial state, stacked along a leading member axis."""
+        """Per-member values of the varying fields and the initial state, stacked along a leading member axis.
+
+        The initial state includes every geom's world pose (`geom_xpos`, `geom_xmat`): MuJoCo Warp computes the
+        poses of geoms welded to the world only in `make_data` and never again, so without them each environment
+        would collide with, and render, member 0's fixtures (a power strip at another yaw: the charger meets its
+        rim 2 mm short). A reset writes the member's poses; the engine's kinematics overwrites the moving ones."""
         rows = {name: np.stack([getattr(m.model, name) for m in self.members]) for name in self.varying}
         rows.update(qpos=np.stack([m.qpos for m in self.members]), qvel=np.stack([m.qvel for m in self.members]),
                     ctrl=np.stack([m.ctrl for m in self.members]))
+        poses = [_geom_poses(m.model, m.qpos) for m in self.members]
+        rows.update(geom_xpos=np.stack([p for p, _ in poses]), geom_xmat=np.stack([r for _, r in poses]))
         return rows
+
+
+def _geom_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every geom's world position [ngeom, 3] and rotation [ngeom, 3, 3] at `qpos` (MuJoCo's kinematics)."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    return data.geom_xpos.copy(), data.geom_xmat.reshape(-1, 3, 3).copy()
 
 
 def _initial_state(padded: PaddedPlan, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
