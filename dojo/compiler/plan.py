@@ -11,6 +11,7 @@ file changes exactly the hashes of the plans that could contain it.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import asdict, dataclass, field
@@ -121,18 +122,49 @@ class Plan:
         return cls(**data)
 
 
+@functools.cache
 def compiler_id() -> str:
-    """What, besides the spec inputs, determines a compiled plan."""
+    """What, besides the spec inputs, determines a compiled plan (cached: reading the installed version parses the
+    package's metadata, once per plan hash before)."""
     return f"robodojo {version('robodojo')} rev {COMPILER_REVISION}; mujoco {mujoco.__version__}"
+
+
+def _stamp(path: Path) -> tuple[str, int, int]:
+    """A file's identity for the digest caches: its path, modification time and size (as the spec library's own
+    cache of parsed files)."""
+    stat = path.stat()
+    return str(path), stat.st_mtime_ns, stat.st_size
+
+
+_RELPATHS: dict[tuple[str, tuple[str, int, int]], tuple[str, ...]] = {}
+"""(kind, file stamp) -> the files a spec of that file names: one entry per spec file version a process reads."""
+
+
+def _relpaths(spec: Spec, stamp: tuple[str, int, int]) -> tuple[str, ...]:
+    """The files a spec names (its `x-relpath` values, sorted), found once per version of its file: finding them
+    walks the data beside its schema, which every plan of a suite repeated for the same few specs."""
+    key = (spec.kind, stamp)
+    if key not in _RELPATHS:
+        _RELPATHS[key] = tuple(sorted(str(use.value) for use in collect_marked(spec.kind, spec.data, "x-relpath")))
+    return _RELPATHS[key]
+
+
+@functools.lru_cache(maxsize=4096)
+def _digest_of(stamps: tuple[tuple[str, int, int], ...], relpaths: tuple[str, ...]) -> str:
+    """`_spec_digest` of the files behind `stamps` (the spec's, then each named file's), read only when one of
+    them changed: each plan hash re-read and re-hashed the spec's meshes and textures before."""
+    h = hashlib.sha256(Path(stamps[0][0]).read_bytes())
+    for rel, (path, _, _) in zip(relpaths, stamps[1:]):
+        h.update(rel.encode())
+        h.update(Path(path).read_bytes())
+    return h.hexdigest()
 
 
 def _spec_digest(spec: Spec) -> str:
     """Hash of a spec file and every file it names, by path relative to its package (same in a wheel)."""
-    h = hashlib.sha256(spec.path.read_bytes())
-    for use in sorted(collect_marked(spec.kind, spec.data, "x-relpath"), key=lambda u: str(u.value)):
-        h.update(str(use.value).encode())
-        h.update((spec.path.parent / str(use.value)).read_bytes())
-    return h.hexdigest()
+    stamp = _stamp(spec.path)
+    relpaths = _relpaths(spec, stamp)
+    return _digest_of((stamp, *(_stamp(spec.path.parent / rel) for rel in relpaths)), relpaths)
 
 
 def input_specs(library: SpecLibrary, task: Spec, setting: str) -> list[Spec]:
