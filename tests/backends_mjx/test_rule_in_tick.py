@@ -83,9 +83,9 @@ class _Asked:
 
 
 def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, num_envs: int = 2,
-         known: list[PlannedEpisode] | None = None) -> tuple[dict[tuple, tuple], np.ndarray, int]:
+         known: list[PlannedEpisode] | None = None) -> tuple[dict[tuple, tuple], Any, int]:
     """`dojo run`'s loop on the mjx backend, which knows the plans of `known` (default: the queue's): each
-    episode's result row (by key), the slots' final joint positions and how many chunks the policy was asked for."""
+    episode's result row (by key), the backend after the run and how many chunks the policy was asked for."""
     link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"))
     options = BackendOptions(settings={"impl": "warp"}, action_modes=("joint",),
                              plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue})
@@ -99,36 +99,38 @@ def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, nu
     evaluate(queue, factory, link, store, "run", num_envs=num_envs, progress=_Quiet(), on_device=on_device)
     rows = {r.key: (r.success, r.score, r.steps, r.stage_times, r.failure_reason, r.success_terms)
             for r in store.rows}
-    return rows, built[0].qpos(), link.chunks
+    return rows, built[0], link.chunks
 
 
 def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, caplog):
-    host, host_qpos, asked = _run(queue, {"name": "zero"}, "off")
+    host, host_backend, asked = _run(queue, {"name": "zero"}, "off")
     with caplog.at_level(logging.INFO, logger="dojo.evaluation.evaluate"):
-        device, device_qpos, not_asked = _run(queue, {"name": "zero"}, "on")
+        device, device_backend, not_asked = _run(queue, {"name": "zero"}, "on")
     assert len(host) == 3 and all(steps == 6 for _, _, steps, *_ in host.values())
     assert device == host
-    np.testing.assert_array_equal(device_qpos, host_qpos)  # the arms held the same poses through every chunk
+    # the arms held the same poses through every chunk, and the refill compiled nothing: one program
+    np.testing.assert_array_equal(device_backend.qpos(), host_backend.qpos())
+    assert device_backend._engine.compilations() == 1
     assert asked == 3 * 2 and not_asked == 0  # two chunks per episode on the host, none asked on the device
     assert "policy zero runs on the device" in caplog.text
 
 
 def test_random_in_the_tick_is_reproducible_from_its_seed(queue):
-    first, first_qpos, asked = _run(queue[:2], {"name": "random", "seed": 3}, "on")
-    again, again_qpos, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on")
-    other, other_qpos, _ = _run(queue[:2], {"name": "random", "seed": 4}, "on")
+    first, first_backend, asked = _run(queue[:2], {"name": "random", "seed": 3}, "on")
+    again, again_backend, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on")
+    _, other_backend, _ = _run(queue[:2], {"name": "random", "seed": 4}, "on")
     assert asked == 0 and again == first
-    np.testing.assert_array_equal(again_qpos, first_qpos)
-    assert np.abs(other_qpos - first_qpos).max() > 1e-4  # another seed moved the arms otherwise
+    np.testing.assert_array_equal(again_backend.qpos(), first_backend.qpos())
+    assert np.abs(other_backend.qpos() - first_backend.qpos()).max() > 1e-4  # another seed moved the arms otherwise
 
 
 def test_a_refilled_slot_starts_a_fresh_chunk(queue):
     """An episode's draws and chunks restart with it: played in a slot that ran another episode first, it ends
     exactly as in a fresh backend (a chunk or a draw counter carried over would move the arms otherwise)."""
-    after, after_qpos, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on", num_envs=1)
-    alone, alone_qpos, _ = _run(queue[1:2], {"name": "random", "seed": 3}, "on", num_envs=1, known=queue[:2])
+    after, after_backend, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on", num_envs=1)
+    alone, alone_backend, _ = _run(queue[1:2], {"name": "random", "seed": 3}, "on", num_envs=1, known=queue[:2])
     assert after[queue[1].plan_hash, queue[1].eval_seed, queue[1].episode] == next(iter(alone.values()))
-    np.testing.assert_array_equal(after_qpos, alone_qpos)
+    np.testing.assert_array_equal(after_backend.qpos(), alone_backend.qpos())
 
 
 def test_the_rule_is_the_same_arithmetic_under_jax():
