@@ -85,3 +85,23 @@ def test_backend_runs_jax_for_auto_without_a_gpu_and_warp_only_where_warp_lang_i
     else:
         with pytest.raises(RuntimeError, match="warp-lang"):
             MjxBackend(impl="warp")
+
+
+def test_jax_on_a_cpu_points_to_warp_where_warp_lang_is(caplog):
+    """A real task's tick under `jax` compiled for 20 minutes on the 2-core machine and then failed in LLVM; the
+    backend says so, and names the implementation that runs there, when it is installed."""
+    import logging
+
+    from dojo.backends.mjx.backend import MjxBackend
+    from dojo.backends.mjx.cache import warp_available, warp_installed
+
+    if warp_available():
+        pytest.skip("this machine runs MuJoCo Warp on a GPU")
+    with caplog.at_level(logging.WARNING, logger="dojo.backends.mjx.backend"):
+        MjxBackend(impl="jax")
+    assert ("backend.impl=warp" in caplog.text) == warp_installed()
+    caplog.clear()
+    if warp_installed():
+        with caplog.at_level(logging.WARNING, logger="dojo.backends.mjx.backend"):
+            MjxBackend(impl="warp")
+        assert "backend.impl=warp" not in caplog.text

@@ -59,7 +59,7 @@ from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache,
-                                     graph_mode_name)
+                                     graph_mode_name, warp_installed)
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
@@ -336,6 +336,11 @@ class MjxBackend(Backend):
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
         log.info("mjx backend: %s%s", describe_impl(self.impl),
                  f", CUDA graphs: {graph_mode_name(self.graph_mode)}" if self.graph_mode is not None else "")
+        if self.impl == "jax" and jax.default_backend() == "cpu" and warp_installed():
+            # Measured on the 2-core machine (2026-11-28): push_t's tick compiled for 20 minutes under `jax`, then
+            # LLVM failed ("Unable to allocate section memory"), while `warp` ran the same command to its end.
+            log.warning("mjx backend: on a CPU, XLA compiles a real task's tick for tens of minutes and may fail; "
+                        "backend.impl=warp runs MuJoCo Warp's kernels on the CPU instead")
         self._known: dict[str, Any] = {}
         self._slots: list[_Slot] = []
         self._engine: Engine | None = None
