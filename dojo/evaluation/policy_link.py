@@ -162,10 +162,17 @@ def _why_on_the_host(meta: PolicyMetadata, rule: ChunkRule | None, backend: str,
     return None
 
 
+LINK_SETTINGS = ("on_device", "shared_memory", "token")
+"""Policy config keys that say how to reach or run the policy, not which policy it is: `on_device` (where the
+policy runs changes no result of a rule that `matches_host`; a run whose results it does change says so in its
+identity itself), `shared_memory` (the same images by another way) and `token` (a secret, which the identity would
+write into the results store in plain text; a new token reaches the same server)."""
+
+
 def policy_identity(cfg: dict[str, Any]) -> dict[str, Any]:
-    """A policy config as a run's identity holds it: without `on_device`, since where the policy runs changes no
-    result of a rule that `matches_host`; a run whose results it does change says so in its identity itself."""
-    return {k: v for k, v in cfg.items() if k != "on_device"}
+    """A policy config as a run's identity holds it: without its `LINK_SETTINGS`, so that a run resumes whichever
+    way it reaches its policy, and no secret is stored."""
+    return {k: v for k, v in cfg.items() if k not in LINK_SETTINGS}
 
 
 def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:

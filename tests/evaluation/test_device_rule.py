@@ -7,6 +7,7 @@ tests/backends_mjx/test_rule_in_tick.py; these run on the mujoco backend and wit
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -19,7 +20,7 @@ from dojo.backends.registry import BackendOptions, make_backend
 from dojo.cli.run_cmd import _rule_changes_results
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_suite
-from dojo.evaluation.evaluate import evaluate
+from dojo.evaluation.evaluate import evaluate, run_id_for
 from dojo.evaluation.policy_link import device_rule_for, on_device_setting, open_policy, policy_identity
 from xpolicylab.policies import HoldRule, JitterRule
 
@@ -64,6 +65,19 @@ def test_every_policy_config_has_the_option_and_no_run_id_carries_it():
         cfg = OmegaConf.to_container(OmegaConf.load(path))
         assert cfg["on_device"] == "auto", path.name
         assert "on_device" not in policy_identity(cfg) and policy_identity(cfg).items() <= cfg.items()
+
+
+def test_a_remote_runs_identity_holds_neither_its_token_nor_how_images_travel():
+    """The identity is stored in the results store as JSON: a token there is a leaked secret. And a run started
+    with shared memory resumes without it (the same images), as one started with an old token resumes with a new
+    one."""
+    remote = OmegaConf.to_container(OmegaConf.load(POLICY_CONFIGS / "remote.yaml"))
+    one = {**remote, "url": "ws://gpu-box:8000", "token": "s3cret-token", "shared_memory": "on"}
+    other = {**one, "token": "rotated", "shared_memory": "off"}
+    assert "s3cret-token" not in json.dumps(policy_identity(one))
+    assert run_id_for({"policy_config": policy_identity(one)}) == run_id_for({"policy_config": policy_identity(other)})
+    moved = {**one, "url": "ws://other-box:8000"}  # another server may serve another checkpoint: another run
+    assert run_id_for({"policy_config": policy_identity(one)}) != run_id_for({"policy_config": policy_identity(moved)})
 
 
 def test_only_a_rule_that_gives_other_numbers_in_the_backend_makes_another_run():
