@@ -26,11 +26,13 @@ DEFAULT_ROOT = "outputs"
 DEFAULT_KEY = "default"
 RESOLVER = "dojo_run_key"
 # Config groups already named by the folders above the key, settings that do not change the results, and where and
-# how a policy is served (a server's address is not what is evaluated, images through shared memory or the socket
-# are the same images, and a token must never be written into a path; the run id inside the store still tells runs
-# of different servers apart).
+# how a policy is served or run (a server's address is not what is evaluated, images through shared memory or the
+# socket are the same images, a token must never be written into a path, and a built-in policy run inside the
+# backend's step gives the host's results or says otherwise in its run id; the run id inside the store still tells
+# runs of different servers apart).
 NOT_IN_KEY = frozenset({"suite", "policy", "results", "report", "num_envs", "progress", "jobs", "plans",
-                        "episode_timeout_s", "policy.url", "policy.token", "policy.shared_memory"})
+                        "episode_timeout_s", "policy.url", "policy.token", "policy.shared_memory",
+                        "policy.on_device"})
 # Groups none of whose keys change the results: where a run executes (`launcher=ray launcher.workers=4` resumes
 # the run that `launcher=local` started) and Hydra's own.
 NOT_IN_KEY_GROUPS = frozenset({"hydra", "launcher"})

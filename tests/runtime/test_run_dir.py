@@ -34,6 +34,12 @@ def test_a_server_address_and_token_stay_out_of_the_path() -> None:
                     "policy.shared_memory=off", "episodes=1"]) == "episodes=1"
 
 
+def test_where_a_built_in_policy_runs_stays_out_of_the_path() -> None:
+    """`policy.on_device=off` gives `zero` the same results: the same folder (a `random` run on the device has its
+    own run id inside the store)."""
+    assert run_key(["policy=zero", "policy.on_device=off", "episodes=1"]) == run_key(["policy=zero", "episodes=1"])
+
+
 def test_long_values_keep_a_readable_head_and_a_hash() -> None:
     long_a = run_key(["packs=[/home/someone/projects/very/long/path/to/pack_a]"])
     long_b = run_key(["packs=[/home/someone/projects/very/long/path/to/pack_b]"])

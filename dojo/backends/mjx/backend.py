@@ -275,7 +275,7 @@ def _proprioception(robot: RobotIndex, d: Tree) -> dict[str, jax.Array]:
     quat = mat_to_quat(jnp, rot)
     quat = quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
     arm_q, arm_v = d.qpos[:, robot.qpos_adr], d.qvel[:, robot.dof_adr]
-    grip_v = d.ten_velocity[:, robot.tendons] / width
+    grip_v = d._impl.ten_velocity[:, robot.tendons] / width
     return {"joint_pos": jnp.concatenate([arm_q, grip[..., None]], -1).reshape(arm_q.shape[0], -1),
             "joint_vel": jnp.concatenate([arm_v, grip_v[..., None]], -1).reshape(arm_q.shape[0], -1),
             "ee_pose": jnp.concatenate([pos, quat], -1), "gripper": grip}
