@@ -20,8 +20,9 @@ from dojo.backends.registry import BackendOptions, make_backend
 from dojo.compiler.episodes import PlannedEpisode
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_suite
-from dojo.evaluation.episode import EpisodeResult
 from dojo.evaluation.evaluate import evaluate
+from dojo.evaluation.progress import Progress
+from dojo.evaluation.results_store import ResultsStore
 from dojo.evaluation.policy_link import open_policy
 from xpolicylab.policies import JitterRule, load_policy
 
@@ -38,28 +39,6 @@ def queue(tmp_path_factory: pytest.TempPathFactory) -> list[PlannedEpisode]:
     library = SpecLibrary.load([PACK], strict=False)
     suite = library.get("suite", "short_suite")
     return list(compile_suite(library, suite, tmp_path_factory.mktemp("plans"), episodes=3).episodes)
-
-
-class _Rows:
-    """The loop's results store, in memory."""
-
-    def __init__(self) -> None:
-        self.rows: list[EpisodeResult] = []
-
-    def finished(self, run_id: str) -> set[Any]:
-        return set()
-
-    def add_many(self, results: Sequence[EpisodeResult]) -> int:
-        self.rows.extend(results)
-        return len(results)
-
-
-class _Quiet:
-    def episode_finished(self, row: EpisodeResult) -> None:
-        pass
-
-    def interactions(self, n: int) -> None:
-        pass
 
 
 class _Asked:
@@ -95,10 +74,11 @@ def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, nu
         built.append(make_backend("mjx", options))
         return built[-1]
 
-    store = _Rows()
-    evaluate(queue, factory, link, store, "run", num_envs=num_envs, progress=_Quiet(), on_device=on_device)
-    rows = {r.key: (r.success, r.score, r.steps, r.stage_times, r.failure_reason, r.success_terms)
-            for r in store.rows}
+    with ResultsStore(":memory:") as store:
+        evaluate(queue, factory, link, store, "run", num_envs=num_envs, progress=Progress(len(queue), mode="quiet"),
+                 on_device=on_device)
+        rows = {r.key: (r.success, r.score, r.steps, r.stage_times, r.failure_reason, r.success_terms)
+                for r in store.rows("run")}
     return rows, built[0], link.chunks
 
 

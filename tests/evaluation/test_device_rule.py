@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +20,8 @@ from dojo.cli.run_cmd import _rule_changes_results
 from dojo.compiler.spec_library import SpecLibrary
 from dojo.compiler.suite_compile import compile_suite
 from dojo.evaluation.evaluate import evaluate, run_id_for
+from dojo.evaluation.progress import Progress
+from dojo.evaluation.results_store import ResultsStore
 from dojo.evaluation.policy_link import device_rule_for, on_device_setting, open_policy, policy_identity
 from xpolicylab.policies import HoldRule, JitterRule
 
@@ -93,26 +94,6 @@ def test_only_a_rule_that_gives_other_numbers_in_the_backend_makes_another_run()
         _rule_changes_results(random, mjx + mujoco, False, "on")  # before anything runs
 
 
-class _Rows:
-    def __init__(self) -> None:
-        self.rows: list[Any] = []
-
-    def finished(self, run_id: str) -> set[Any]:
-        return set()
-
-    def add_many(self, results: Sequence[Any]) -> int:
-        self.rows.extend(results)
-        return len(results)
-
-
-class _Quiet:
-    def episode_finished(self, row: Any) -> None:
-        pass
-
-    def interactions(self, n: int) -> None:
-        pass
-
-
 def test_auto_falls_back_to_the_host_path_on_the_mujoco_backend_silently_and_on_refuses(tmp_path, caplog):
     library = SpecLibrary.load([PACK], strict=False)
     queue = list(compile_suite(library, library.get("suite", "short_suite"), tmp_path / "plans").episodes)
@@ -121,10 +102,10 @@ def test_auto_falls_back_to_the_host_path_on_the_mujoco_backend_silently_and_on_
     act = link.act
     link.act = lambda obs, ids: asked.append(len(ids)) or act(obs, ids)
     factory = lambda: make_backend("mujoco", BackendOptions(settings={"threads": 1}, action_modes=("joint",)))
-    store = _Rows()
-    with caplog.at_level(logging.INFO):
-        assert evaluate(queue, factory, link, store, "run", num_envs=2, progress=_Quiet(), on_device="auto") == 2
-    assert sum(asked) == 2 * 2 and [r.steps for r in store.rows] == [6, 6]  # two chunks of 4 per episode
+    quiet = Progress(len(queue), mode="quiet")
+    with ResultsStore(":memory:") as store, caplog.at_level(logging.INFO):
+        assert evaluate(queue, factory, link, store, "run", num_envs=2, progress=quiet, on_device="auto") == 2
+        assert sum(asked) == 2 * 2 and [r.steps for r in store.rows("run")] == [6, 6]  # two chunks of 4 each
     assert "device" not in caplog.text and not [r for r in caplog.records if r.levelno >= logging.WARNING]
     with pytest.raises(ValueError, match="policy.on_device=on, but backend mujoco runs no policy rule"):
-        evaluate(queue, factory, link, _Rows(), "run", num_envs=2, progress=_Quiet(), on_device="on")
+        evaluate(queue, factory, link, ResultsStore(":memory:"), "run", num_envs=2, progress=quiet, on_device="on")
