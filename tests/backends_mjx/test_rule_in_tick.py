@@ -95,22 +95,17 @@ def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, 
     assert "policy zero runs on the device" in caplog.text
 
 
-def test_random_in_the_tick_is_reproducible_from_its_seed(queue):
-    first, first_backend, asked = _run(queue[:2], {"name": "random", "seed": 3}, "on")
-    again, again_backend, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on")
-    _, other_backend, _ = _run(queue[:2], {"name": "random", "seed": 4}, "on")
-    assert asked == 0 and again == first
-    np.testing.assert_array_equal(again_backend.qpos(), first_backend.qpos())
-    assert np.abs(other_backend.qpos() - first_backend.qpos()).max() > 1e-4  # another seed moved the arms otherwise
-
-
-def test_a_refilled_slot_starts_a_fresh_chunk(queue):
-    """An episode's draws and chunks restart with it: played in a slot that ran another episode first, it ends
-    exactly as in a fresh backend (a chunk or a draw counter carried over would move the arms otherwise)."""
-    after, after_backend, _ = _run(queue[:2], {"name": "random", "seed": 3}, "on", num_envs=1)
+def test_random_in_the_tick_is_reproducible_from_its_seed_and_restarts_with_each_episode(queue):
+    """An episode's draws and chunks depend on the seed and the episode alone: played in a slot that ran another
+    episode first, it ends exactly as in a fresh backend (a chunk or a draw counter carried over would move the arms
+    otherwise), and another seed moves the arms otherwise. Three runs, since each compiles a tick."""
+    after, after_backend, asked = _run(queue[:2], {"name": "random", "seed": 3}, "on", num_envs=1)
     alone, alone_backend, _ = _run(queue[1:2], {"name": "random", "seed": 3}, "on", num_envs=1, known=queue[:2])
+    _, other_backend, _ = _run(queue[:2], {"name": "random", "seed": 4}, "on", num_envs=1)
+    assert asked == 0
     assert after[queue[1].plan_hash, queue[1].eval_seed, queue[1].episode] == next(iter(alone.values()))
     np.testing.assert_array_equal(after_backend.qpos(), alone_backend.qpos())
+    assert np.abs(other_backend.qpos() - after_backend.qpos()).max() > 1e-4
 
 
 def test_the_rule_is_the_same_arithmetic_under_jax():
