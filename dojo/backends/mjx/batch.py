@@ -5,8 +5,8 @@ the bucket member (plan) it simulates. The member table (varying model fields an
 plan) lives on the device; each tick gathers the rows of the current members and vmaps `mjx.step` over the data
 *and* those fields (`in_axes` 0 for the varying fields, None for the shared model). A tick applies resets, writes
 the controls, runs the plan's physics sub-steps (`n_substeps` per 25 Hz control step; under Warp as one call, see
-`substeps`), and recomputes kinematics so that positions match the new state. All buckets of a tick are traced into one program,
-so the device runs different tasks' batches concurrently instead of one after another.
+`substeps`), and recomputes kinematics so that positions match the new state. All buckets of a tick are traced
+into one program, so the device runs different tasks' batches concurrently instead of one after another.
 
 Continuous batching. Refilling an environment is "set its member index and its reset flag", both ordinary
 inputs of fixed shape, so the program compiled for the first tick serves the whole run.
