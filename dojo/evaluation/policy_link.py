@@ -20,6 +20,7 @@ import numpy as np
 
 from dojo.backends.base import ChunkRule
 from dojo.backends.registry import runs_policy_rules
+from dojo.evaluation.run_dir import LINK_SETTINGS
 from xpolicylab.model import Model, Observation, PolicyMetadata
 
 log = logging.getLogger(__name__)
@@ -160,13 +161,6 @@ def _why_on_the_host(meta: PolicyMetadata, rule: ChunkRule | None, backend: str,
     if not runs_policy_rules(backend):
         return f"backend {backend} runs no policy rule inside its step (it steps on the host)"
     return None
-
-
-LINK_SETTINGS = ("on_device", "shared_memory", "token")
-"""Policy config keys that say how to reach or run the policy, not which policy it is: `on_device` (where the
-policy runs changes no result of a rule that `matches_host`; a run whose results it does change says so in its
-identity itself), `shared_memory` (the same images by another way) and `token` (a secret, which the identity would
-write into the results store in plain text; a new token reaches the same server)."""
 
 
 def policy_identity(cfg: dict[str, Any]) -> dict[str, Any]:
