@@ -4,7 +4,7 @@ Under `impl='warp'` each bucket gets a `WarpRenderer` (MuJoCo Warp's batched ray
 a tick, `BucketCameras.frames` renders every row of the bucket in one jitted call, from the engine's own batched
 `mjx.Data` and the members' per-environment model fields (colours, lights, textures of the random setting) gathered
 from the bucket's member table, exactly as the physics sees them; only the rows asked for leave the device, as one
-uint8 (and uint16 depth) array per camera. The host renderer (`render.CpuRenderer`) remains the path under `jax`:
+uint8 (and uint16 depth) array per camera, copied through a page-locked buffer on a GPU (`host_copy`). The host renderer (`render.CpuRenderer`) remains the path under `jax`:
 it re-renders each environment from its qpos with MuJoCo's OpenGL renderer.
 """
 
@@ -19,6 +19,7 @@ import numpy as np
 
 from dojo.backends.mjx.batch import BucketArrays
 from dojo.backends.mjx.capture import run_settled
+from dojo.backends.mjx.host_copy import PinnedCopier
 from dojo.backends.mjx.render import Frames, RenderConfig, WarpRenderer
 
 
@@ -34,6 +35,7 @@ class BucketCameras:
             return self.renderer(mx.tree_replace({name: table[name][member] for name in varying}), data, in_axes)
 
         self._render = jax.jit(render)
+        self._copier = PinnedCopier()
 
     def frames(self, data: Any, members: np.ndarray, rows: Sequence[int]) -> Frames:
         """Images of `rows` of the bucket at the engine's current state `data` (`members`: every row's member
@@ -41,4 +43,5 @@ class BucketCameras:
         first use."""
         out = run_settled(self._render, self.arrays.mx, self.arrays.table, jnp.asarray(members, jnp.int32), data)
         pick = jnp.asarray(np.asarray(rows, np.int32))
-        return Frames(np.asarray(out.rgb[pick]), None if out.depth is None else np.asarray(out.depth[pick]))
+        host = self._copier.to_host
+        return Frames(host(out.rgb[pick]), None if out.depth is None else host(out.depth[pick]))
