@@ -22,7 +22,7 @@ def compile_task(cfg: DictConfig) -> int:
     started = time.perf_counter()
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
     demos = load_demo_lengths(horizons_file(cfg.horizons))
-    stats = compile_suite(library, suite, Path(cfg.out), jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
+    stats = compile_suite(library, suite, Path(cfg.out), jobs=cfg.jobs, seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=list(cfg.tasks) if cfg.tasks is not None else None)
     seconds = time.perf_counter() - started
     per_plan = seconds / stats.compiled if stats.compiled else 0.0

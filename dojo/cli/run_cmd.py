@@ -95,14 +95,14 @@ def run_task(cfg: DictConfig) -> int:
     plan_dir = Path(cfg.plans) if cfg.plans else DEFAULT_PLAN_CACHE / suite.id
     tasks = list(cfg.tasks) if cfg.tasks is not None else None
     demos = load_demo_lengths(horizons_file(cfg.horizons))
-    stats = compile_suite(library, suite, plan_dir, jobs=int(cfg.jobs), seeds=seeds, episodes=cfg.episodes,
+    stats = compile_suite(library, suite, plan_dir, jobs=cfg.jobs, seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=tasks)
     queue = list(stats.episodes)
     hidden = _hidden_seeds(cfg, suite)
     if hidden:
         hidden_dir = plan_dir.with_name(plan_dir.name + "-hidden")
         count = suite.data["verification"].get("episodes", 10)
-        hidden_stats = compile_suite(library, suite, hidden_dir, jobs=int(cfg.jobs), seeds=hidden, episodes=count,
+        hidden_stats = compile_suite(library, suite, hidden_dir, jobs=cfg.jobs, seeds=hidden, episodes=count,
                                      demo_lengths=demos, tasks=tasks, split="hidden")
         queue += hidden_stats.episodes
 

@@ -97,7 +97,7 @@ def episode_path(episodes_dir: Path, k: int) -> Path:
     return episodes_dir / f"episode_{k:06d}.hdf5"
 
 
-def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: Path, jobs: int
+def compile_plans(library: Any, task: Any, setting: str, seeds: list[int], out: Path, jobs: int | str
                   ) -> list[tuple[Path, str]]:
     """(plan file, hash) per scene seed, compiling those not yet in `out` (named as the suite compiler names
     them, so a plan is found again by its hash)."""
@@ -198,7 +198,7 @@ def collect_task(cfg: DictConfig) -> int:
                 start = len(queue)
                 seeds = [int(cfg.seed_offset) + k for k in range(start, min(start + max(missing, 0), max_attempts))]
                 for k, (path, digest) in enumerate(compile_plans(library, task, str(cfg.setting), seeds, plan_dir,
-                                                                 int(cfg.jobs)), start):
+                                                                 cfg.jobs), start):
                     plan_paths[digest] = str(path)
                     queue.append(PlannedEpisode(task=task.id, dimension=task.data["dimension"],
                                                 setting=str(cfg.setting), scene_seed=int(cfg.seed_offset) + k,

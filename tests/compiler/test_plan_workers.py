@@ -12,6 +12,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 PACK = Path(__file__).resolve().parents[1] / "specs" / "pack"
 
 SCRIPT = textwrap.dedent("""
@@ -49,3 +51,19 @@ def test_compiling_in_workers_after_jax_started_never_forks(tmp_path: Path) -> N
         if path.name != "index.json":
             assert (tmp_path / "jobs2" / path).read_bytes() == (tmp_path / "jobs1" / path).read_bytes()
     assert (tmp_path / "v.mp4").stat().st_size > 0
+
+
+def test_auto_starts_a_worker_per_cpu_only_when_each_has_plans_enough_to_repay_its_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from dojo.compiler.suite_compile import PLANS_PER_WORKER, worker_count
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))
+    assert worker_count("auto", 1) == 1
+    assert worker_count("auto", 2 * PLANS_PER_WORKER - 1) == 1
+    assert worker_count("auto", 3 * PLANS_PER_WORKER) == 3
+    assert worker_count("auto", 6_144) == 16  # no more than the CPUs this process may use
+    assert worker_count(4, 1) == worker_count("4", 1) == 4  # a number is taken as given (Hydra may pass a string)
+    for bad in (0, "many", None):
+        with pytest.raises(ValueError, match="jobs="):
+            worker_count(bad, 10)
