@@ -144,26 +144,31 @@ def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
                  if any(not np.array_equal(getattr(m, name), getattr(ref, name)) for m in models[1:]))
 
 
-def compiled_models(padded: Sequence[PaddedPlan]) -> list[mujoco.MjModel]:
-    """Each padded plan's model, compiled on threads, in order (with each source plan's own model, which
-    `_initial_state` reads). MuJoCo's XML compiler lets go of the GIL, and compiling is most of `make_buckets`' time:
-    120 `insert_tubes` plans spent 4.1 of 7.5 s in it on the 2-core machine, where two threads compiled 2.1x as
-    fast; 1,536 plans took 42 s on the H200 host before."""
+def compiled_models(padded: Sequence[PaddedPlan]) -> list[tuple[mujoco.MjModel, str]]:
+    """Each padded plan's model and its `structural_signature`, made on threads, in order (with each source plan's
+    own model, which `_initial_state` reads). MuJoCo's XML compiler and hashlib's hashing of large buffers let go of
+    the GIL, and they are most of `make_buckets`' time: 120 `insert_tubes` plans spent 4.1 of 7.5 s compiling on
+    the 2-core machine, where two threads compiled 2.1x as fast; on the H200 host 1,024 plans spent 2.4 s compiling
+    and 3.7 s hashing one after another (2026-11-28), before the hashing moved onto the threads."""
+    def signed(pp: PaddedPlan) -> tuple[mujoco.MjModel, str]:
+        model = mujoco.MjModel.from_xml_string(pp.xml)
+        return model, structural_signature(model)
+
     if len(padded) < 2:
-        return [mujoco.MjModel.from_xml_string(pp.xml) for pp in padded]
+        return [signed(pp) for pp in padded]
     with ThreadPoolExecutor(min(len(padded), os.cpu_count() or 1)) as pool:
         for _ in pool.map(lambda pp: pp.plan.model(), padded):
             pass
-        return list(pool.map(lambda pp: mujoco.MjModel.from_xml_string(pp.xml), padded))
+        return list(pool.map(signed, padded))
 
 
 def _padded_members(plans: Sequence[Plan], name: str, every_object: bool) -> dict[str, list[Member]]:
     """The plans padded together (pad.py) and compiled, by structural signature, in signature order."""
     out: dict[str, list[Member]] = defaultdict(list)
     padded = pad_group(plans, name, every_object=every_object)
-    for pp, model in zip(padded, compiled_models(padded), strict=True):
+    for pp, (model, signature) in zip(padded, compiled_models(padded), strict=True):
         qpos, qvel, ctrl = _initial_state(pp, model)
-        out[structural_signature(model)].append(Member(pp, model, qpos, qvel, ctrl))
+        out[signature].append(Member(pp, model, qpos, qvel, ctrl))
     return dict(sorted(out.items()))
 
 
