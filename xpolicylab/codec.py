@@ -496,22 +496,35 @@ class _BufferPool:
     A policy server decodes the same image sizes over and over; without recycling, the allocator hands back
     freshly mapped pages each time and page faults cost as much as the copy itself. A buffer is free again when
     the pool holds the only reference (every array decoded into it keeps it alive through its memoryview).
+
+    Buffers of one size are handed out in turn from a cursor, which looks at no more than ``PROBES`` of them: a
+    request's arrays are decoded in order and let go of together, so the buffer after the last one handed out is
+    the one most likely free. (Scanning every buffer from the start made a batch of n arrays cost n^2/2 reference
+    counts: 6,144 images of 2,048 environments, 19 million per request.) A size keeps at most ``max_bytes`` of
+    buffers; beyond that, buffers are allocated for the request and let go of.
     """
 
-    def __init__(self, max_per_size: int = 1024) -> None:
+    PROBES = 8
+
+    def __init__(self, max_bytes: int = 4 << 30) -> None:
         self._buffers: dict[int, list[np.ndarray]] = {}
+        self._cursor: dict[int, int] = {}
         self._lock = threading.Lock()
-        self._max_per_size = max_per_size
+        self._max_bytes = max_bytes
 
     def get(self, n: int) -> np.ndarray:
         with self._lock:
             buffers = self._buffers.setdefault(n, [])
-            for buf in buffers:
-                if sys.getrefcount(buf) == 3:  # the list, the loop variable and getrefcount's argument
-                    return buf
+            start = self._cursor.get(n, 0)
+            for k in range(min(self.PROBES, len(buffers))):
+                i = (start + k) % len(buffers)
+                if sys.getrefcount(buffers[i]) == 2:  # the list's reference and getrefcount's argument
+                    self._cursor[n] = i + 1
+                    return buffers[i]
             buf = np.empty(n, dtype=np.uint8)
-            if len(buffers) < self._max_per_size:
-                buffers.append(buf)
+            if (len(buffers) + 1) * n <= self._max_bytes:
+                buffers.insert(start, buf)  # the cursor's place: the next request finds it in order again
+                self._cursor[n] = start + 1
             return buf
 
 

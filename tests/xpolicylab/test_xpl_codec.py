@@ -121,3 +121,24 @@ def test_decoder_refuses(name):
     with pytest.raises(ProtocolError) as info:
         codec.decode(REFUSED[name])
     assert info.value.code is ErrorCode.INVALID_FRAME
+
+
+def test_buffer_pool_hands_a_released_batch_back_in_order_and_keeps_live_buffers_out():
+    pool = codec._BufferPool(max_bytes=1 << 20)
+    batch = [pool.get(100) for _ in range(40)]
+    order = [id(b) for b in batch]
+    del batch
+    again = [pool.get(100) for _ in range(40)]  # the same buffers, in the same order: one probe each
+    assert [id(b) for b in again] == order and len(pool._buffers[100]) == 40
+    kept = again[::2]
+    del again
+    fresh = [pool.get(100) for _ in range(40)]
+    assert not {id(b) for b in kept} & {id(b) for b in fresh}  # a buffer still referenced is never handed out
+    assert len({id(b) for b in fresh}) == 40
+
+
+def test_buffer_pool_keeps_no_more_bytes_per_size_than_it_may():
+    pool = codec._BufferPool(max_bytes=1000)
+    held = [pool.get(100) for _ in range(25)]
+    assert len(held) == 25 and len({id(b) for b in held}) == 25
+    assert len(pool._buffers[100]) == 10
