@@ -1,4 +1,5 @@
-"""Device-to-host copies through the reused staging buffer: the same bytes as `np.asarray`, arrays of their own."""
+"""Device-to-host copies into the kept staging buffers: the same bytes as `np.asarray`, and a buffer is written
+again only once nothing handed out of it is held."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -6,29 +7,55 @@ import pytest
 
 pytest.importorskip("warp")
 
-from dojo.backends.mjx.host_copy import PinnedCopier  # noqa: E402
+from dojo.backends.mjx.host_copy import RING, PinnedCopier  # noqa: E402
 
 
-def test_staged_copies_give_the_arrays_bytes_for_every_dtype_and_own_their_memory() -> None:
+def _images(seed: int) -> jnp.ndarray:
+    return (jnp.arange(2 * 3 * 5 * 7 * 3, dtype=jnp.int32).reshape(2, 3, 5, 7, 3) * (seed + 1)).astype(jnp.uint8)
+
+
+def test_staged_copies_give_the_arrays_bytes_for_every_dtype() -> None:
     copier = PinnedCopier(everywhere=True)
-    rgb = jnp.arange(2 * 3 * 5 * 7 * 3, dtype=jnp.int32).reshape(2, 3, 5, 7, 3).astype(jnp.uint8)
+    rgb = _images(0)
     depth = (jnp.arange(2 * 3 * 5 * 7, dtype=jnp.int32).reshape(2, 3, 5, 7) * 997).astype(jnp.uint16)
     first = copier.to_host(rgb)
-    assert first.dtype == np.uint8 and first.shape == rgb.shape
+    assert first.dtype == np.uint8 and first.shape == rgb.shape and not first.flags.writeable
     np.testing.assert_array_equal(first, np.asarray(rgb))
-    # a larger array grows the buffer; uint16 travels as its bytes
-    second = copier.to_host(depth)
+    second = copier.to_host(depth)  # uint16 travels as its bytes
     assert second.dtype == np.uint16
     np.testing.assert_array_equal(second, np.asarray(depth))
-    # a smaller copy into the same buffer leaves what was handed out before untouched
-    third = copier.to_host(jnp.zeros((4,), jnp.uint8))
-    np.testing.assert_array_equal(third, np.zeros(4, np.uint8))
-    np.testing.assert_array_equal(first, np.asarray(rgb))
-    np.testing.assert_array_equal(second, np.asarray(depth))
+
+
+def test_a_buffer_is_reused_only_once_nothing_handed_out_of_it_is_held() -> None:
+    copier = PinnedCopier(everywhere=True)
+    held = [copier.to_host(_images(k))[1, 2] for k in range(RING)]  # a slice of each, as observations hold them
+    assert len(copier._ring) == RING
+    beyond = copier.to_host(_images(RING))  # every buffer held: a copy of its own, the held ones untouched
+    np.testing.assert_array_equal(beyond, np.asarray(_images(RING)))
+    for k, image in enumerate(held):
+        np.testing.assert_array_equal(image, np.asarray(_images(k))[1, 2])
+    del held[0], beyond
+    again = copier.to_host(_images(7))  # the buffer let go of is written again; the others are not
+    np.testing.assert_array_equal(again, np.asarray(_images(7)))
+    for k, image in enumerate(held, start=1):
+        np.testing.assert_array_equal(image, np.asarray(_images(k))[1, 2])
+    assert len(copier._ring) == RING
+
+
+def test_a_free_buffer_too_small_is_replaced_and_a_held_one_is_kept() -> None:
+    copier = PinnedCopier(everywhere=True)
+    small = copier.to_host(jnp.ones((4,), jnp.uint8))
+    big = copier.to_host(_images(1))  # the small buffer is held: a second buffer
+    assert len(copier._ring) == 2
+    del small
+    bigger = copier.to_host(jnp.zeros((3, *_images(1).shape), jnp.uint8))  # the free small one is replaced
+    assert len(copier._ring) == 2 and all(b.size >= 4 for b, _ in copier._ring)
+    np.testing.assert_array_equal(big, np.asarray(_images(1)))
+    np.testing.assert_array_equal(bigger, 0)
 
 
 def test_off_the_gpu_the_copier_uses_numpy_and_leaves_warp_alone() -> None:
     copier = PinnedCopier()
     out = copier.to_host(jnp.ones((3, 2), jnp.float32))
     np.testing.assert_array_equal(out, np.ones((3, 2), np.float32))
-    assert copier._buffer is None
+    assert copier._ring == []

@@ -1,46 +1,85 @@
-"""Device-to-host copies of large arrays (camera images) through a reused pinned host buffer.
+"""Device-to-host copies of large arrays (camera images) into reused page-locked host buffers.
 
 Why. `np.asarray` of a JAX array on an NVIDIA GPU copies into pageable host memory: on an H200 (2026-11-28) it
 moved a batch of 512 environments' three 640x480 RGB images (1.4 GB of uint8) at 1.6 GB/s, and in `dojo run` with
 three cameras those copies were most of a control step's time (12.6 of 15.3 s of backend steps, under cProfile).
-The same copy into page-locked memory through Warp ran at 47 GB/s, and a host copy out of it at several GB/s more.
-Page-locked memory is slow to allocate, so one buffer is kept per copier and grown when a larger batch comes.
-Warp is already loaded wherever images are rendered on a GPU (MuJoCo Warp's tracer); elsewhere (JAX on a CPU,
-Warp's CPU device) `np.asarray` is already a host copy and is used as is.
+The same copy into page-locked memory through Warp ran at 47 GB/s. Copying the result once more into an array of
+the caller's own costs about as much again on the host (a fresh 1.4 GB array fills at about 4 GB/s), so the caller
+gets a view of the page-locked buffer itself, and a buffer is written again only once nothing refers to what was
+handed out of it (every view of it keeps its NumPy array alive; the policy server's decode buffers are recycled the
+same way, `xpolicylab.codec._BufferPool`).
+
+Page-locked memory is slow to allocate, so the buffers are kept (at most `RING`; a caller that holds on to more
+generations of images than that gets pageable copies). A buffer is dropped, to be replaced by a larger one, only
+while nothing refers to it, so it is freed at once, here: memory freed while Warp captures a CUDA graph breaks the
+capture (`capture.py`). Warp is already loaded wherever images are rendered on a GPU (MuJoCo Warp's tracer);
+elsewhere (JAX on a CPU, Warp's CPU device) `np.asarray` is already a host copy and is used as is.
 """
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
+
+RING = 3
+"""Buffers a copier keeps: the images of this step and of the steps before it that a caller still holds."""
 
 
 class PinnedCopier:
-    """Copies device arrays to fresh host arrays, staged in one page-locked buffer that it keeps between calls."""
+    """Copies device arrays to the host into reused page-locked buffers (see the module docstring)."""
 
     def __init__(self, everywhere: bool = False) -> None:
         self.everywhere = everywhere  # stage off the GPU too (Warp's CPU device; what CI can check of this path)
-        self._buffer: Any = None  # a warp.array of uint8 on the host, page-locked, or None until the first copy
+        self._ring: list[tuple[Any, np.ndarray]] = []  # (warp.array of uint8 on the host, its NumPy view)
 
     def to_host(self, array: jax.Array) -> np.ndarray:
-        """`array` as a NumPy array of its own (the caller may keep it: the staging buffer is reused)."""
-        if not (self.everywhere or _on_gpu(array)) or array.size == 0:
-            return np.asarray(array)
+        """`array` on the host: a read-only view of one of the copier's buffers, valid for as long as it is held."""
+        if not (self.everywhere or _on_gpu(array)) or array.size == 0 or len(array.devices()) != 1:
+            return np.asarray(array)  # (an array split over several GPUs is copied shard by shard by JAX)
         import warp as wp
 
         wp.init()  # once per process; later calls return at once
-        flat = jax.lax.bitcast_convert_type(array, jnp.uint8).reshape(-1)  # bytes: one buffer serves every dtype
-        flat = jax.block_until_ready(flat)  # Warp's copy runs on its own stream, after what made the bytes
-        nbytes, source = int(flat.size), wp.from_jax(flat)
-        if self._buffer is None or self._buffer.size < nbytes:
-            self._buffer = None  # free the old buffer before allocating the larger one
-            self._buffer = wp.empty(nbytes, dtype=wp.uint8, device="cpu", pinned=source.device.is_cuda)
-        wp.copy(self._buffer, source, count=nbytes)
+        array = jax.block_until_ready(array)  # Warp's copy runs on its own stream, after what made the array
+        nbytes, device = int(array.nbytes), next(iter(array.devices()))
+        # The array's own bytes, as Warp sees them: no reshape or bitcast on the device (each would be a new array
+        # of the same size; Warp's arrays have at most four dimensions, images five).
+        source = wp.array(ptr=array.unsafe_buffer_pointer(), dtype=wp.uint8, shape=(nbytes,),
+                          device="cpu" if device.platform == "cpu" else f"cuda:{device.local_hardware_id}")
+        host = self._free_buffer(nbytes, source.device.is_cuda)
+        if host is None:  # every buffer is still held by the caller
+            return np.asarray(array)
+        buffer, whole = host
+        wp.copy(buffer, source, count=nbytes)
         wp.synchronize_device(source.device)
-        return self._buffer.numpy()[:nbytes].view(array.dtype).reshape(array.shape).copy()
+        out = whole[:nbytes].view(array.dtype).reshape(array.shape)
+        out.flags.writeable = False  # the caller reads it; the next copies write here once it is let go of
+        return out
+
+    def _free_buffer(self, nbytes: int, pinned: bool) -> tuple[Any, np.ndarray] | None:
+        """A kept buffer of at least `nbytes` that nothing else refers to, allocating (or replacing a free but
+        smaller one) while fewer than `RING` are kept; None when all are held."""
+        import warp as wp
+
+        free = [k for k in range(len(self._ring)) if _unreferenced(self._ring, k)]
+        for k in free:
+            if self._ring[k][0].size >= nbytes:
+                return self._ring[k]
+        if free:  # a free buffer too small for this batch: freed now, replaced below
+            del self._ring[free[0]]
+        elif len(self._ring) >= RING:
+            return None
+        buffer = wp.empty(nbytes, dtype=wp.uint8, device="cpu", pinned=pinned)
+        self._ring.append((buffer, buffer.numpy()))
+        return self._ring[-1]
+
+
+def _unreferenced(ring: list[tuple[Any, np.ndarray]], k: int) -> bool:
+    """Whether nothing but the ring refers to buffer `k`'s NumPy view: every view taken of it refers to it (NumPy's
+    `base`), so two references remain when none is held, the ring's tuple and `sys.getrefcount`'s argument."""
+    return sys.getrefcount(ring[k][1]) == 2
 
 
 def _on_gpu(array: jax.Array) -> bool:
