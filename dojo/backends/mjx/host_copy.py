@@ -47,7 +47,7 @@ class PinnedCopier:
         # The array's own bytes, as Warp sees them: no reshape or bitcast on the device (each would be a new array
         # of the same size; Warp's arrays have at most four dimensions, images five).
         source = wp.array(ptr=array.unsafe_buffer_pointer(), dtype=wp.uint8, shape=(nbytes,),
-                          device="cpu" if device.platform == "cpu" else f"cuda:{device.local_hardware_id}")
+                          device=wp.device_from_jax(device))
         host = self._free_buffer(nbytes, source.device.is_cuda)
         if host is None:  # every buffer is still held by the caller
             return np.asarray(array)
