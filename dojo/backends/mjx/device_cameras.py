@@ -4,8 +4,9 @@ Under `impl='warp'` each bucket gets a `WarpRenderer` (MuJoCo Warp's batched ray
 a tick, `BucketCameras.frames` renders every row of the bucket in one jitted call, from the engine's own batched
 `mjx.Data` and the members' per-environment model fields (colours, lights, textures of the random setting) gathered
 from the bucket's member table, exactly as the physics sees them; only the rows asked for leave the device, as one
-uint8 (and uint16 depth) array per camera, copied through a page-locked buffer on a GPU (`host_copy`). The host renderer (`render.CpuRenderer`) remains the path under `jax`:
-it re-renders each environment from its qpos with MuJoCo's OpenGL renderer.
+uint8 (and uint16 depth) array per camera, on a GPU into kept page-locked buffers (`host_copy`). The host renderer
+(`render.CpuRenderer`) remains the path under `jax`: it re-renders each environment from its qpos with MuJoCo's
+OpenGL renderer.
 """
 
 from __future__ import annotations

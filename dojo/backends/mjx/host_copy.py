@@ -24,8 +24,9 @@ from typing import Any
 import jax
 import numpy as np
 
-RING = 3
-"""Buffers a copier keeps: the images of this step and of the steps before it that a caller still holds."""
+RING = 4
+"""Buffers a copier keeps: RGB and depth of the images a caller asked for last and of the time before, if it still
+holds those (only buffers something holds are added, so a caller that lets go of its images uses one or two)."""
 
 
 class PinnedCopier:
