@@ -101,9 +101,14 @@ class Bucket:
         rows = {name: np.stack([getattr(m.model, name) for m in self.members]) for name in self.varying}
         rows.update(qpos=np.stack([m.qpos for m in self.members]), qvel=np.stack([m.qvel for m in self.members]),
                     ctrl=np.stack([m.ctrl for m in self.members]))
-        poses = [_geom_poses(m.model, m.qpos) for m in self.members]
-        rows.update(geom_xpos=np.stack([p for p, _ in poses]), geom_xmat=np.stack([r for _, r in poses]))
+        rows["geom_xpos"], rows["geom_xmat"] = self.geom_poses()
         return rows
+
+    def geom_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every member's geom world positions [members, ngeom, 3] and rotations [members, ngeom, 3, 3] at its
+        initial state (MuJoCo's kinematics on the member's model; see `table`)."""
+        poses = [_geom_poses(m.model, m.qpos) for m in self.members]
+        return np.stack([p for p, _ in poses]), np.stack([r for _, r in poses])
 
 
 def _geom_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

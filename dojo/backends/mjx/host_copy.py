@@ -38,13 +38,17 @@ class PinnedCopier:
 
     def to_host(self, array: jax.Array) -> np.ndarray:
         """`array` on the host: a read-only view of one of the copier's buffers, valid for as long as it is held."""
-        if not (self.everywhere or _on_gpu(array)) or array.size == 0 or len(array.devices()) != 1:
+        devices = array.devices()
+        if array.size == 0 or len(devices) != 1:
             return np.asarray(array)  # (an array split over several GPUs is copied shard by shard by JAX)
+        device = next(iter(devices))
+        if not (self.everywhere or device.platform == "gpu"):
+            return np.asarray(array)  # off the GPU, already a host copy
         import warp as wp
 
         wp.init()  # once per process; later calls return at once
         array = jax.block_until_ready(array)  # Warp's copy runs on its own stream, after what made the array
-        nbytes, device = int(array.nbytes), next(iter(array.devices()))
+        nbytes = int(array.nbytes)
         # The array's own bytes, as Warp sees them: no reshape or bitcast on the device (each would be a new array
         # of the same size; Warp's arrays have at most four dimensions, images five).
         source = wp.array(ptr=array.unsafe_buffer_pointer(), dtype=wp.uint8, shape=(nbytes,),
@@ -82,8 +86,3 @@ def _unreferenced(ring: list[tuple[Any, np.ndarray]], k: int) -> bool:
     `base`), so two references remain when none is held, the ring's tuple and `sys.getrefcount`'s argument."""
     return sys.getrefcount(ring[k][1]) == 2
 
-
-def _on_gpu(array: jax.Array) -> bool:
-    """Whether `array` lives on an NVIDIA GPU (where pageable copies are the slow path)."""
-    devices = getattr(array, "devices", None)
-    return bool(devices) and all(d.platform == "gpu" for d in devices())

@@ -113,9 +113,9 @@ class StreamEngine:
             member = np.arange(size) % len(bucket.members)
             data.qpos.assign(np.stack([bucket.members[i].qpos for i in member]).astype(np.float32))
             data.qvel.assign(np.stack([bucket.members[i].qvel for i in member]).astype(np.float32))
-            table = bucket.table()  # fixtures' poses: Warp computes them in make_data only (`Bucket.table`)
-            data.geom_xpos.assign(table["geom_xpos"][member].astype(np.float32))
-            data.geom_xmat.assign(table["geom_xmat"][member].astype(np.float32))
+            xpos, xmat = bucket.geom_poses()  # fixtures' poses: Warp computes them in make_data only (`Bucket.table`)
+            data.geom_xpos.assign(xpos[member].astype(np.float32))
+            data.geom_xmat.assign(xmat[member].astype(np.float32))
             stream = shared or wp.Stream()
             sources = [wp.array(np.asarray(c, np.float32), dtype=float) for c in ctrls]
             with wp.ScopedStream(stream):
