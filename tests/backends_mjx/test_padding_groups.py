@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import random
 
 import mujoco
 import numpy as np
 from conftest import toy_plan
 
 from dojo.backends.mjx.bucket import make_buckets
-from dojo.backends.mjx.merge_groups import padding_groups
+from dojo.backends.mjx.merge_groups import Cost, Union, Unit, estimate, largest, padding_groups
 from dojo.compiler.plan import Plan
 
 TETRAHEDRON = np.asarray([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.04
@@ -74,3 +75,35 @@ def test_plans_whose_frames_differ_are_never_padded_together():
     plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.0,), block="sphere")]
     assert len(padding_groups(plans, math.inf)) == 2
     assert len(make_buckets(plans)) == 2
+
+
+def test_a_union_grown_one_unit_at_a_time_matches_its_definition_at_every_step():
+    """`Union` adds a unit by its own slot keys; the estimate must stay the frame's largest part plus, per key, the
+    most slots any unit needs times one slot's cost, and `fits` must agree with that bound before each addition."""
+    rng = random.Random(0)
+    keys = [f"k{i}" for i in range(6)]
+    cost = {k: Cost(rng.randint(0, 7), rng.randint(1, 5)) for k in keys}
+    units = []
+    for i in range(60):
+        slots = {k: rng.randint(1, 4) for k in rng.sample(keys, rng.randint(0, 4))}
+        frame = Cost(rng.randint(10, 30), rng.randint(10, 30))
+        own = Cost(frame.nv + sum(n * cost[k].nv for k, n in slots.items()),
+                   frame.ngeom + sum(n * cost[k].ngeom for k, n in slots.items()))
+        units.append(Unit(f"u{i}", (), own, frame, slots, {k: cost[k] for k in slots}))
+
+    def defined(some: list[Unit]) -> tuple[Cost, Cost]:
+        most = {k: max(u.slots.get(k, 0) for u in some) for k in keys}
+        union = Cost(max(u.frame.nv for u in some) + sum(n * cost[k].nv for k, n in most.items()),
+                     max(u.frame.ngeom for u in some) + sum(n * cost[k].ngeom for k, n in most.items()))
+        return union, Cost(max(u.own.nv for u in some), max(u.own.ngeom for u in some))
+
+    union, verdicts = Union([units[0]]), set()
+    for k, unit in enumerate(units[1:], start=2):
+        expected, ref = defined(units[:k])
+        for growth in (0.0, 0.3, 1.0):
+            verdict = expected.nv <= (1 + growth) * ref.nv and expected.ngeom <= (1 + growth) * ref.ngeom
+            assert union.fits(unit, growth) == verdict
+            verdicts.add(verdict)
+        union.add(unit)
+        assert (union.estimate, union.ref) == (expected, ref) == (estimate(units[:k]), largest(units[:k]))
+    assert verdicts == {True, False}  # the bound was met and missed along the way

@@ -47,7 +47,7 @@ def structural_signature(model: mujoco.MjModel) -> str:
     for name in STATIC_FIELDS:
         value = getattr(model, name)
         h.update(name.encode())
-        h.update(np.ascontiguousarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
+        h.update(np.ascontiguousarray(value) if isinstance(value, np.ndarray) else repr(value).encode())
     for name in VALUE_FIELDS:
         h.update(f"{name}{np.shape(getattr(model, name))}".encode())
     for name in _OPT_STATIC + _OPT_VALUES:  # options are the robot's; differing values split rather than batch
