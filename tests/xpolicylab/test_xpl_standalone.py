@@ -23,9 +23,9 @@ from xpolicylab.checker import CheckConfig, run_check
 assert xpolicylab.__file__.startswith(sys.argv[1]), xpolicylab.__file__
 pkg = new_policy("standalone", sys.argv[2])
 config = {"policy_name": "standalone", "action_type": "joint", "chunk_size": 4, "checkpoint": "none",
-          "robot": "arx_x5_bimanual"}
+          "robot": "arx_x5_bimanual", "image_width": 224, "image_height": 224}
 with ServerThread(load_policy(str(pkg / "model.py"), config), ServerConfig(port=0)) as srv:
-    report = run_check(CheckConfig(url=srv.url, n=2, width=640, height=480))
+    report = run_check(CheckConfig(url=srv.url, n=2, width=224, height=224))
 print(report.format())
 sys.exit(0 if report.passed else 1)
 """

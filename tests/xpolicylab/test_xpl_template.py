@@ -28,6 +28,16 @@ def test_generated_package_has_every_file_and_shared_params(tmp_path):
     assert {"dataset", "task", "checkpoint", "robot", "action_type", "seed"} <= params.keys()
     assert params["task"] == "hang_mugs" and params["seed"] == 3
     assert params["checkpoint"] == "checkpoints/hang_mugs/seed3"
+    # the image size the policy declares is a parameter too, and the served metadata carries it
+    sys.path.insert(0, str(pkg))
+    try:
+        from model import Model
+        declared = Model(experiment_params(pkg / "deploy.yml", ["image_width=160", "image_height=120"])).metadata
+    finally:
+        sys.path.remove(str(pkg))
+        sys.modules.pop("model", None)
+    assert (params["image_width"], params["image_height"]) == (224, 224)
+    assert (declared.image_width, declared.image_height) == (160, 120)
     for script in ("install.sh", "process_data.sh", "train.sh", "eval.sh"):
         assert os.access(pkg / script, os.X_OK)
         assert subprocess.run(["bash", "-n", str(pkg / script)]).returncode == 0
