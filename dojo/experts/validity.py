@@ -62,9 +62,11 @@ def episode_list(library: SpecLibrary, task: str, seeds: int) -> list[tuple[str,
     return [(compared[0], i) for i in range(first)] + [(compared[1], i) for i in range(seeds - first)]
 
 
-def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Path, jobs: int = 1
+def plan_files(library: SpecLibrary, tasks: Sequence[str], seeds: int, cache: Path, jobs: int | str = 1
                ) -> dict[str, list[Path]]:
-    """Plan files of every task's validity episodes, compiling the missing ones (in `jobs` processes)."""
+    """Plan files of every task's validity episodes, compiling the missing ones (in `jobs` processes; `"auto"`
+    as `suite_compile.worker_count` decides, so a few plans compile here rather than in processes that take seconds
+    to start)."""
     out: dict[str, list[Path]] = {}
     todo = []
     for task in tasks:

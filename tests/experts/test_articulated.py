@@ -28,7 +28,7 @@ SEEDS = 3
 
 @pytest.fixture(scope="module")
 def files(plan_cache) -> dict[str, list[Path]]:
-    return plan_files(SpecLibrary.load([PACK]), TASKS, SEEDS, plan_cache, jobs=2)
+    return plan_files(SpecLibrary.load([PACK]), TASKS, SEEDS, plan_cache, jobs="auto")
 
 
 def _context(path: Path) -> SkillContext:

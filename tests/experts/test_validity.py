@@ -31,13 +31,13 @@ ZERO_STEPS = 40
 
 @pytest.mark.parametrize("task", TASKS)
 def test_expert_solves_the_first_seeds(library, plan_cache, task):
-    files = plan_files(library, [task], CI_SEEDS, plan_cache, jobs=2)[task]
+    files = plan_files(library, [task], CI_SEEDS, plan_cache, jobs="auto")[task]
     outcomes = run_policy(policies()["expert"], files, num_envs=CI_SEEDS)
     assert [o.success for o in outcomes] == [True] * CI_SEEDS, outcomes
 
 
 def test_zero_policy_never_succeeds(library, plan_cache):
-    files = plan_files(library, TASKS, 1, plan_cache, jobs=2)
+    files = plan_files(library, TASKS, 1, plan_cache, jobs="auto")
     outcomes = run_policy(policies()["zero"], [f for t in TASKS for f in files[t]], max_steps=ZERO_STEPS)
     assert sorted(o.task for o in outcomes) == TASKS
     assert not any(o.success for o in outcomes), outcomes
@@ -66,6 +66,6 @@ def test_validity_table(library, plan_cache, task):
 def test_episodes_in_processes_score_as_in_one(library, plan_cache):
     """`--jobs N` runs one episode per process: the same outcomes as the episodes batched in one backend, and
     the random policy's do not depend on how many processes share the work."""
-    files = plan_files(library, ["deposit_coin"], 2, plan_cache, jobs=2)["deposit_coin"]
+    files = plan_files(library, ["deposit_coin"], 2, plan_cache, jobs="auto")["deposit_coin"]
     assert run_episodes("expert", files, 2) == run_policy(policies()["expert"], files, num_envs=2)
     assert run_episodes("random", files, 2) == run_episodes("random", files[::-1], 2)[::-1]
