@@ -7,6 +7,7 @@ import pytest
 
 pytest.importorskip("warp")
 
+from dojo.backends.mjx import host_copy  # noqa: E402
 from dojo.backends.mjx.host_copy import RING, PinnedCopier  # noqa: E402
 
 
@@ -42,16 +43,28 @@ def test_a_buffer_is_reused_only_once_nothing_handed_out_of_it_is_held() -> None
     assert len(copier._ring) == RING
 
 
-def test_a_free_buffer_too_small_is_replaced_and_a_held_one_is_kept() -> None:
+def test_a_free_buffer_too_small_is_replaced_and_a_held_one_is_kept(monkeypatch) -> None:
+    monkeypatch.setattr(host_copy, "ROW", 8)  # buffers in rows of 8 bytes, so that the first one is small
     copier = PinnedCopier(everywhere=True)
     small = copier.to_host(jnp.ones((4,), jnp.uint8))
     big = copier.to_host(_images(1))  # the small buffer is held: a second buffer
     assert len(copier._ring) == 2
     del small
     bigger = copier.to_host(jnp.zeros((3, *_images(1).shape), jnp.uint8))  # the free small one is replaced
-    assert len(copier._ring) == 2 and all(b.size >= 4 for b, _ in copier._ring)
+    assert sorted(b.size for b, _ in copier._ring) == [632, 1896]  # 630 and 1,890 bytes in rows of 8
     np.testing.assert_array_equal(big, np.asarray(_images(1)))
     np.testing.assert_array_equal(bigger, 0)
+
+
+def test_a_batch_larger_than_one_copy_goes_in_pieces(monkeypatch) -> None:
+    """Warp's dimensions are 32-bit: a batch over 2 GiB is copied `CHUNK` bytes at a time into a buffer of `ROW`-byte
+    rows. Small figures here: 630 bytes in 7 pieces of at most 100 (the last one short), 10 rows of 64."""
+    monkeypatch.setattr(host_copy, "CHUNK", 100)
+    monkeypatch.setattr(host_copy, "ROW", 64)
+    copier = PinnedCopier(everywhere=True)
+    rgb = _images(3)
+    np.testing.assert_array_equal(copier.to_host(rgb), np.asarray(rgb))
+    assert copier._ring[0][0].shape == (10, 64)
 
 
 def test_off_the_gpu_the_copier_uses_numpy_and_leaves_warp_alone() -> None:

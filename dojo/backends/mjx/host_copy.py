@@ -24,6 +24,12 @@ from typing import Any
 import jax
 import numpy as np
 
+CHUNK = 1 << 30
+"""Bytes per Warp copy, and ROW bytes per row of the kept buffers: Warp's array dimensions are 32-bit, so a batch
+over 2 GiB (1,024 environments' three 640x480 RGB images are 2.8 GB) is copied in pieces into buffers seen as rows;
+one array of its size failed (`Array shapes must not exceed ... 32-bit integer`, H200, 2026-11-28)."""
+ROW = 1 << 20
+
 RING = 4
 """Buffers a copier keeps: RGB and depth of the images a caller asked for last and of the time before, if it still
 holds those (only buffers something holds are added, so a caller that lets go of its images uses one or two)."""
@@ -48,18 +54,20 @@ class PinnedCopier:
 
         wp.init()  # once per process; later calls return at once
         array = jax.block_until_ready(array)  # Warp's copy runs on its own stream, after what made the array
-        nbytes = int(array.nbytes)
-        # The array's own bytes, as Warp sees them: no reshape or bitcast on the device (each would be a new array
-        # of the same size; Warp's arrays have at most four dimensions, images five).
-        source = wp.array(ptr=array.unsafe_buffer_pointer(), dtype=wp.uint8, shape=(nbytes,),
-                          device=wp.device_from_jax(device))
-        host = self._free_buffer(nbytes, source.device.is_cuda)
+        nbytes, start = int(array.nbytes), array.unsafe_buffer_pointer()
+        source_device = wp.device_from_jax(device)
+        host = self._free_buffer(nbytes, source_device.is_cuda)
         if host is None:  # every buffer is still held by the caller
             return np.asarray(array)
         buffer, whole = host
-        wp.copy(buffer, source, count=nbytes)
-        wp.synchronize_device(source.device)
-        out = whole[:nbytes].view(array.dtype).reshape(array.shape)
+        for offset in range(0, nbytes, CHUNK):
+            # The array's own bytes, as Warp sees them: no reshape or bitcast on the device (each would be a new
+            # array of the same size; Warp's arrays have at most four dimensions, images five).
+            count = min(CHUNK, nbytes - offset)
+            piece = wp.array(ptr=start + offset, dtype=wp.uint8, shape=(count,), device=source_device)
+            wp.copy(buffer, piece, dest_offset=offset, count=count)
+        wp.synchronize_device(source_device)
+        out = whole.reshape(-1)[:nbytes].view(array.dtype).reshape(array.shape)
         out.flags.writeable = False  # the caller reads it; the next copies write here once it is let go of
         return out
 
@@ -76,7 +84,7 @@ class PinnedCopier:
             del self._ring[free[0]]
         elif len(self._ring) >= RING:
             return None
-        buffer = wp.empty(nbytes, dtype=wp.uint8, device="cpu", pinned=pinned)
+        buffer = wp.empty((-(-nbytes // ROW), ROW), dtype=wp.uint8, device="cpu", pinned=pinned)
         self._ring.append((buffer, buffer.numpy()))
         return self._ring[-1]
 
