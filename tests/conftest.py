@@ -7,11 +7,6 @@ GPU), else OSMesa, else none (a GPU machine without libEGL runs the physics and 
 Tests read the videos that runs record with imageio, whose ffmpeg reader is started with a `preexec_fn` unless
 this variable is set (as `dojo.evaluation.recorder.Mp4Writer` sets it for writing): in a test process where JAX's
 threads already run, that is a fork of a multithreaded process running Python, which can deadlock.
-
-Tests marked `long` are collected first. pytest-xdist hands tests to its workers in collection order, so a test of
-minutes collected near the end (the README's quick start, in `tests/test_readme.py`) ran while the other worker,
-done, waited: CI's wall time was its share plus that tail. Only tests without a module-scoped fixture are marked,
-since moving one test of a module away from its neighbours would build their shared fixture on both workers.
 """
 
 import os
@@ -20,8 +15,3 @@ from dojo.backends.gl_platform import choose_gl_platform
 
 choose_gl_platform()
 os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
-
-
-def pytest_collection_modifyitems(items: list) -> None:
-    """Long tests first, in their collected order; every other test keeps its place after them."""
-    items.sort(key=lambda item: item.get_closest_marker("long") is None)

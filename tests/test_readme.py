@@ -194,7 +194,6 @@ def test_readme_names_outputs_and_the_fast_variant_shortens_every_run() -> None:
     assert sweep.outputs[0] == "outputs/robodojo_sim_mini/zero/*/results.sqlite"
 
 
-@pytest.mark.long
 def test_readme_quick_start_runs_in_order_on_one_task(tmp_path: Path) -> None:
     commands = [_shortened(c) for c in quick_start(README.read_text()) if "./setup.sh" not in c.text]
     _run(commands, tmp_path, _env(tmp_path, this_venv=True), timeout=1500)

@@ -33,7 +33,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.long
 def test_a_served_policy_runs_a_real_suite_on_the_emulator(tmp_path: Path, figures) -> None:
     port = _free_port()
     server = subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"port={port}"],

@@ -196,7 +196,6 @@ def test_tasks_keeps_only_those_of_the_suite(tmp_path: Path) -> None:
     assert "suite mini_test has no task 'stack_tset' (did you mean 'stack_test'?)" in result.stderr
 
 
-@pytest.mark.long
 def test_dojo_run_with_no_arguments(tmp_path: Path) -> None:
     """The main job right after set-up: the default suite, the built-in reference policy, the CPU backend."""
     result = dojo("run", cwd=tmp_path)
