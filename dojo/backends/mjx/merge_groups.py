@@ -79,8 +79,7 @@ class Unit:
         per_slot = {key: xml_cost(body) for key, body in slotted}
         slots = dict(Counter(key for key, _ in slotted))
         outside, inside = xml_cost(frame.find("worldbody")), _total(slots, per_slot)
-        return cls(plan.hash, (plan,), Cost(outside.nv + inside.nv, outside.ngeom + inside.ngeom), outside, slots,
-                   per_slot)
+        return cls(plan.hash, (plan,), _plus(outside, inside), outside, slots, per_slot)
 
 
 _JOINT_DOFS = {"free": 6, "ball": 3, "slide": 1, "hinge": 1}
@@ -120,8 +119,8 @@ class Union:
         for unit in units:
             self.add(unit)
 
-    def _with(self, unit: Unit) -> tuple[Cost, Cost]:
-        """(estimate, largest) of the union with `unit` added, without adding it."""
+    def _with(self, unit: Unit) -> tuple[Cost, Cost, Cost]:
+        """(frame, slotted, ref) of the union with `unit` added, without adding it."""
         nv, ngeom = self.slotted.nv, self.slotted.ngeom
         for key, n in unit.slots.items():
             extra = n - self.slots.get(key, 0)
@@ -130,23 +129,26 @@ class Union:
                 nv, ngeom = nv + extra * cost.nv, ngeom + extra * cost.ngeom
         frame = Cost(max(self.frame.nv, unit.frame.nv), max(self.frame.ngeom, unit.frame.ngeom))
         ref = Cost(max(self.ref.nv, unit.own.nv), max(self.ref.ngeom, unit.own.ngeom))
-        return Cost(frame.nv + nv, frame.ngeom + ngeom), ref
+        return frame, Cost(nv, ngeom), ref
 
     def add(self, unit: Unit) -> None:
-        estimate, self.ref = self._with(unit)
-        self.frame = Cost(max(self.frame.nv, unit.frame.nv), max(self.frame.ngeom, unit.frame.ngeom))
-        self.slotted = Cost(estimate.nv - self.frame.nv, estimate.ngeom - self.frame.ngeom)
+        self.frame, self.slotted, self.ref = self._with(unit)
         for key, n in unit.slots.items():
             self.slots[key] = max(self.slots.get(key, 0), n)
             self.per_slot.setdefault(key, unit.per_slot[key])
 
     @property
     def estimate(self) -> Cost:
-        return Cost(self.frame.nv + self.slotted.nv, self.frame.ngeom + self.slotted.ngeom)
+        return _plus(self.frame, self.slotted)
 
     def fits(self, unit: Unit, growth: float) -> bool:
         """Whether the union with `unit` added stays within `1 + growth` of its largest unit (`within`)."""
-        return _bounded(*self._with(unit), growth)
+        frame, slotted, ref = self._with(unit)
+        return _bounded(_plus(frame, slotted), ref, growth)
+
+
+def _plus(a: Cost, b: Cost) -> Cost:
+    return Cost(a.nv + b.nv, a.ngeom + b.ngeom)
 
 
 def _bounded(union: Cost, ref: Cost, growth: float) -> bool:
