@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from xpolicylab.params import apply_overrides, experiment_params, load_params, shell_exports
+from xpolicylab.policies import load_policy
 from xpolicylab.template import FILES, new_policy
 
 from conftest import free_port
@@ -29,13 +30,8 @@ def test_generated_package_has_every_file_and_shared_params(tmp_path):
     assert params["task"] == "hang_mugs" and params["seed"] == 3
     assert params["checkpoint"] == "checkpoints/hang_mugs/seed3"
     # the image size the policy declares is a parameter too, and the served metadata carries it
-    sys.path.insert(0, str(pkg))
-    try:
-        from model import Model
-        declared = Model(experiment_params(pkg / "deploy.yml", ["image_width=160", "image_height=120"])).metadata
-    finally:
-        sys.path.remove(str(pkg))
-        sys.modules.pop("model", None)
+    overridden = experiment_params(pkg / "deploy.yml", ["image_width=160", "image_height=120"])
+    declared = load_policy(str(pkg / "model.py"), overridden).metadata
     assert (params["image_width"], params["image_height"]) == (224, 224)
     assert (declared.image_width, declared.image_height) == (160, 120)
     for script in ("install.sh", "process_data.sh", "train.sh", "eval.sh"):
