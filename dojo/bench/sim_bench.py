@@ -11,7 +11,11 @@
   within that growth of its largest task's), its bucket count, sizes and models beside its rates;
 - `streams` (by name; MuJoCo Warp): every bucket's physics on its own CUDA stream, concurrently (`mjx.streams`),
   with the same graphs on one stream beside it;
-- `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped.
+- `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped;
+- `alone` (by name): each task by itself at the whole batch, on the engine of the mix (`streams` when that is
+  measured, else the jitted one), and `ideal_mix`, what those rates allow the mix at best: a task whose scenes cost
+  five times another's per step costs so in any batch, so no engine runs the mix faster than its tasks alone,
+  each for its share of the batch (the mix's `X_over_ideal_mix` is how close an engine comes).
 
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
@@ -32,7 +36,7 @@ import logging
 import math
 import os
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from importlib.metadata import version
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
@@ -47,10 +51,10 @@ if TYPE_CHECKING:
     from dojo.backends.mjx.sharding import Placement
 
 SWING = 0.1
-MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged", "merged_streams")
+MJX_MODES = ("heterogeneous", "homogeneous", "cpu", "streams", "merged", "merged_streams", "alone")
 """`streams` and `merged_streams` (`mjx.streams`: each bucket on its own CUDA stream, physics only) need MuJoCo
-Warp, and `merged` pays only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower
-on a CPU): all three are asked for by name."""
+Warp, `merged` pays only on a GPU (README, speed: 1.18x the separate buckets at 16,384 H100 environments, slower
+on a CPU), and `alone` measures every task once more: all four are asked for by name."""
 STREAM_MODES = frozenset({"streams", "merged_streams"})
 COUNTS = {"interactions": "control steps: one action applied in one environment",
           "physics_steps": "mj_step calls of one environment (substeps_per_interaction per control step)"}
@@ -146,12 +150,41 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     return out
 
 
-def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup: int) -> dict[str, Any]:
-    """The buckets' physics on one CUDA stream each, against the same graphs on one stream (`mjx.streams`)."""
+def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup: int,
+             serial: bool = True) -> dict[str, Any]:
+    """The buckets' physics on one CUDA stream each, against the same graphs on one stream unless `serial` is
+    False (`mjx.streams`)."""
     from dojo.backends.mjx.streams import measure_streams
 
     controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
-    return measure_streams(buckets, sizes, controls, steps, warmup)
+    return measure_streams(buckets, sizes, controls, steps, warmup, serial=serial)
+
+
+def _alone(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
+           placement: Placement, graphs: object | None, on_streams: bool) -> dict[str, Any]:
+    """Each task's buckets by themselves at the mix's whole batch, and `ideal_mix`: the mix's rate were every task
+    to run at its own full-batch rate for its share of the batch (a share s_t of the environments at i_t
+    interactions/s takes s_t / i_t of a second per interaction of the batch, so the mix's best is
+    1 / sum(s_t / i_t)). Measured on the 24 simulation tasks (H200, 2026-11-28, 16,384 environments, streams) it
+    is 46% of `stack_blocks` alone: the scenes of a mix, not only its engine, decide how near one task it runs."""
+    total = sum(sizes)
+    by_task: dict[tuple[str, ...], list[tuple[Bucket, int]]] = defaultdict(list)
+    for bucket, n in zip(buckets, sizes):
+        by_task[bucket.tasks].append((bucket, n))
+    per_task, seconds_per_interaction, substeps = {}, 0.0, 0.0
+    for tasks, own in sorted(by_task.items()):
+        own_buckets = [b for b, _ in own]
+        own_sizes = [placement.padded(n) for n in split_batch(own_buckets, total)]
+        rates = (_streams(own_buckets, own_sizes, steps, warmup, serial=False) if on_streams else
+                 _rates([_run(own_buckets, own_sizes, impl, steps, warmup, placement, graphs)]))
+        share = sum(n for _, n in own) / total
+        per_task[",".join(tasks)] = {"share": share, "num_envs": sum(own_sizes),
+                                     **{k: rates[k] for k in ("interactions_per_s", "physics_steps_per_s",
+                                                              "setup_s")}}
+        seconds_per_interaction += share / rates["interactions_per_s"]
+        substeps += share * rates["physics_steps_per_s"] / rates["interactions_per_s"]
+    return {"per_task": per_task, "ideal_mix": {"interactions_per_s": 1.0 / seconds_per_interaction,
+                                                "physics_steps_per_s": substeps / seconds_per_interaction}}
 
 
 def _device_counts(devices: Any) -> list[int]:
@@ -350,6 +383,10 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
             out["merged"] = {**about, **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest, graphs)])}
         if "merged_streams" in modes:
             out["merged_streams"] = {**about, **_streams(merged, merged_sizes, steps, warmup)}
+    if "alone" in modes:
+        engine = "streams" if "streams" in modes else "heterogeneous"
+        out["alone"] = {"engine": engine, **_alone(buckets, sizes, impl, steps, warmup, widest, graphs,
+                                                     on_streams=engine == "streams")}
     if "cpu" in modes:
         from dojo.backends.mujoco.bench import measure_cpu
 
@@ -364,5 +401,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
                  ("merged", "homogeneous"), ("merged_streams", "homogeneous"), ("merged_streams", "streams")):
         if a in out and b in out:
             ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
+    if "alone" in out and out["alone"]["engine"] in out:
+        ratios[f"{out['alone']['engine']}_over_ideal_mix"] = (out[out["alone"]["engine"]]["interactions_per_s"]
+                                                              / out["alone"]["ideal_mix"]["interactions_per_s"])
     out["ratios"] = ratios
     return out

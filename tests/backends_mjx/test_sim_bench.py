@@ -56,6 +56,30 @@ def test_bench_sim_merged_mode_reports_its_buckets_beside_the_separate_ones(tmp_
     assert "homogeneous" not in out
 
 
+def test_bench_sim_alone_mode_runs_each_task_at_the_whole_batch_and_bounds_the_mix(tmp_path):
+    """`alone`: each of two toy tasks by itself at the mix's whole batch (2 environments: the `toy` engine is the
+    first test's program), and the mix's best from those rates, each task for its share of the batch."""
+    for k, (task, items) in enumerate({"toy": (), "pair": ("ball", "box")}.items()):
+        for s in range(2):
+            toy_plan(task=task, seed=s, items=items, block_size=0.03 + 0.005 * k).save(tmp_path / f"{task}-{s}.json")
+    cfg = {"what": "sim", "plans": str(tmp_path), "num_envs": 2, "steps": 2, "warmup": 1,
+           "backend": {"name": "mjx", "impl": "jax"}, "modes": ["alone"], "cache_dir": CACHE_DIR}
+    out = json.loads(json.dumps(bench_sim(cfg)))
+    assert out["bucket_sizes"] == [1, 1] and out["alone"]["engine"] == "heterogeneous"
+    per_task = out["alone"]["per_task"]
+    assert sorted(per_task) == ["pair", "toy"]
+    for rates in per_task.values():
+        assert rates["num_envs"] == 2 and rates["share"] == 0.5 and rates["interactions_per_s"] > 0
+        assert rates["physics_steps_per_s"] == pytest.approx(10 * rates["interactions_per_s"])
+    ideal = out["alone"]["ideal_mix"]
+    assert ideal["interactions_per_s"] == pytest.approx(1 / sum(0.5 / r["interactions_per_s"]
+                                                              for r in per_task.values()))
+    slowest, fastest = sorted(r["interactions_per_s"] for r in per_task.values())
+    assert slowest <= ideal["interactions_per_s"] <= fastest
+    assert ideal["physics_steps_per_s"] == pytest.approx(10 * ideal["interactions_per_s"])
+    assert "heterogeneous" not in out and out["ratios"] == {}
+
+
 def test_split_batch_is_proportional_and_complete():
     plans = [toy_plan(seed=s) for s in range(3)] + [toy_plan(task="other", block_size=0.05)]
     buckets = make_buckets(plans)
