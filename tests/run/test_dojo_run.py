@@ -196,8 +196,11 @@ def test_tasks_keeps_only_those_of_the_suite(tmp_path: Path) -> None:
     assert "suite mini_test has no task 'stack_tset' (did you mean 'stack_test'?)" in result.stderr
 
 
+@pytest.mark.slow
 def test_dojo_run_with_no_arguments(tmp_path: Path) -> None:
-    """The main job right after set-up: the default suite, the built-in reference policy, the CPU backend."""
+    """The main job right after set-up: the default suite, the built-in reference policy, the CPU backend. CI runs
+    the same command through the README's quick start (tests/test_readme.py), which does not shorten it; this
+    test adds what the quick start does not check (slow: the whole suite twice in one CI run was 105 s)."""
     result = dojo("run", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "overall" in result.stdout and "stack_blocks" in result.stdout
