@@ -123,13 +123,16 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
              store: RowSink, run_id: str, *, num_envs: int, progress: ProgressSink,
              episode_timeout_s: float | None = None,
              recorder_factory: Callable[[], SlotRecorder] | None = None,
-             more: Callable[[int], list[PlannedEpisode]] | None = None, on_device: Any = "off") -> int:
+             more: Callable[[int], list[PlannedEpisode]] | None = None, on_device: Any = "off",
+             env_id_base: int = 0) -> int:
     """Run every queued episode not yet in the store for `run_id`; return how many were run now.
 
     `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
     ([] when there are none now): episodes are taken only when a slot can start them, so a worker of a launcher
     never holds episodes that another, idle worker could be running. `on_device` (auto | on | off): whether the
-    policy's rule runs inside the backend's step (module docstring)."""
+    policy's rule runs inside the backend's step (module docstring). The policy knows slot i as environment
+    `env_id_base + i`: loops that share one policy server (a launcher's workers) give theirs disjoint ranges, or
+    a policy that keeps state per environment (frames, memory) would see two episodes under one id."""
     finished = store.finished(run_id)
     todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
     if more is not None and len(todo) < num_envs:
@@ -184,7 +187,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                 for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
                     obs[i] = first_obs
                 if rule is None:
-                    policy.reset(refill)
+                    policy.reset([env_id_base + i for i in refill])
                 backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
 
     def host_step() -> StepResult | None:
@@ -194,7 +197,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         if need:
             try:
                 with split.phase("policy"):
-                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], need)
+                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need],
+                                        [env_id_base + i for i in need])
             except ProtocolError as err:
                 if err.code != ErrorCode.INFER_FAILED:
                     raise  # the link itself failed: stop, and resume these episodes later
@@ -233,7 +237,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             backend.load([s.plan for s in slots.values()])
             obs = dict(zip(slots, backend.reset(list(slots))))
             if rule is None:
-                policy.reset(list(slots))
+                policy.reset([env_id_base + i for i in slots])
             backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
         while slots:
             result = host_step() if rule is None else device_step()

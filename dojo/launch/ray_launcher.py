@@ -44,6 +44,9 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.2
 """How often the driver drains finished rows: episodes take seconds, so this adds no measurable delay."""
+FINISH_S = 5.0
+"""When every episode is stored, how long a worker whose `run` has not returned gets to end; one that does not was
+never placed (more workers asked for than the cluster holds) and is not waited for."""
 COUNT_EVERY_S = 1.0
 """How often a worker sends its count of environment steps between reports (the display's rate)."""
 SHIPPED_PLANS = "shipped"
@@ -151,6 +154,7 @@ def _drive(todo: list[PlannedEpisode], job: WorkerJob, store: RowSink, progress:
     running = {w.run.remote(): i for i, w in enumerate(workers)}
     idle: set[int] = set()
     dead: set[int] = set()
+    unplaced: set[int] = set()
     written = 0
     try:
         while True:
@@ -177,7 +181,9 @@ def _drive(todo: list[PlannedEpisode], job: WorkerJob, store: RowSink, progress:
             progress.interactions(drained.interactions)
             if failure is not None:
                 raise failure
-            if drained.left == 0 and not running:
+            if drained.left == 0:  # every episode stored: a worker whose run does not end now was never placed
+                ended, _ = ray.wait(list(running), num_returns=len(running), timeout=FINISH_S) if running else ([], [])
+                unplaced = {i for ref, i in running.items() if ref not in ended}
                 return written
             if drained.queued and idle:  # episodes re-queued after the idle workers had run out of work
                 running.update({workers[i].run.remote(): i for i in idle})
@@ -186,13 +192,14 @@ def _drive(todo: list[PlannedEpisode], job: WorkerJob, store: RowSink, progress:
                 raise RuntimeError(f"every Ray worker died with {drained.left} episodes left; the finished ones "
                                    "are stored: run the same command again to resume")
     finally:
-        _stop(ray, workers, dead, dispatcher)
+        _stop(ray, workers, dead | unplaced, dispatcher)
 
 
-def _stop(ray: Any, workers: list[Any], dead: set[int], dispatcher: Any) -> None:
-    """Close the live workers' policy links, then end every actor of the run."""
+def _stop(ray: Any, workers: list[Any], skip: set[int], dispatcher: Any) -> None:
+    """Close the policy links of the workers not in `skip` (dead, or never placed by the cluster, whose `close`
+    would wait for resources too), then end every actor of the run."""
     try:
-        ray.get([w.close.remote() for i, w in enumerate(workers) if i not in dead], timeout=30)
+        ray.get([w.close.remote() for i, w in enumerate(workers) if i not in skip], timeout=30)
     except Exception as err:  # noqa: BLE001 - ending the run anyway; the actors are killed below
         log.warning("ray: closing the workers: %s", str(err).splitlines()[0])
     for actor in [*workers, dispatcher]:
@@ -202,14 +209,14 @@ def _stop(ray: Any, workers: list[Any], dead: set[int], dispatcher: Any) -> None
 def worker_count(options: RayOptions, cluster: Mapping[str, float], episodes: int) -> int:
     """`launcher.workers`, else as many workers as the cluster's resources hold at once; never more than episodes.
 
-    Ray would keep a worker the cluster cannot hold waiting for resources, forever on a fixed cluster: with no
+    Ray keeps a worker the cluster cannot hold waiting for resources, forever on a fixed cluster: with no
     `launcher.workers` that is an error here; an explicit count larger than what fits only warns (an autoscaling
-    cluster grows for it)."""
+    cluster grows for it), and the run ends when its episodes are done, whether or not every worker started."""
     held = [cluster.get(kind, 0.0) // need for kind, need in
             (("CPU", options.cpus_per_worker), ("GPU", options.gpus_per_worker)) if need]
     fits = int(min(held)) if held else episodes
     if options.workers and options.workers > fits:
-        log.warning("ray: %d workers asked for, %d fit in a cluster of %s; the others wait for resources",
+        log.warning("ray: %d workers asked for, %d fit in a cluster of %s; the others start if it grows",
                     options.workers, fits, _resources(cluster))
     elif not options.workers and fits < 1:
         raise ValueError(f"a worker needs {options.cpus_per_worker:g} CPU and {options.gpus_per_worker:g} GPU "
@@ -276,7 +283,8 @@ class _ShardWorker:
         return evaluate([], self.job.backend_for(self._paths), self._policy, self, self.job.run_id,
                         num_envs=self.job.num_envs, progress=self, episode_timeout_s=self.job.episode_timeout_s,
                         recorder_factory=self.job.recorder_factory, more=self._pull,
-                        on_device=self.job.policy.get("on_device", "off"))
+                        on_device=self.job.policy.get("on_device", "off"),
+                        env_id_base=self.index * self.job.num_envs)  # workers may share one policy server
 
     def close(self) -> None:
         if self._policy is not None:

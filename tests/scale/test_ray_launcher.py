@@ -79,11 +79,14 @@ def reference(cluster: dict[str, str], tmp_path_factory: pytest.TempPathFactory)
     return tmp / "local.sqlite"
 
 
-def test_two_workers_record_what_one_process_records(cluster: dict[str, str], reference: Path,
+def test_the_workers_record_what_one_process_records(cluster: dict[str, str], reference: Path,
                                                      tmp_path: Path) -> None:
-    done = dojo([*RUN, *on_ray(cluster), "num_envs=1", f"results={tmp_path / 'ray.sqlite'}"], cluster, tmp_path)
+    """Three workers asked for on a cluster that holds two: the two run every episode, and the run ends without
+    waiting for the third, which a fixed cluster never places."""
+    done = dojo([*RUN, *on_ray(cluster, workers=3), "num_envs=1", f"results={tmp_path / 'ray.sqlite'}"], cluster,
+                tmp_path)
     assert done.returncode == 0, done.stderr
-    assert "ray: 2 workers" in done.stderr
+    assert "ray: 3 workers asked for, 2 fit in a cluster of 2 CPU" in done.stderr
     assert episodes(tmp_path / "ray.sqlite") == episodes(reference)
     summary = next(line for line in done.stdout.splitlines() if line.startswith('{"event": "summary"'))
     assert '"done": 4, "total": 4' in summary  # the driver's progress counted every worker's episodes
@@ -146,7 +149,11 @@ def test_a_run_resumes_across_launchers(cluster: dict[str, str], reference: Path
     assert episodes(store) == episodes(reference)
 
 
-def test_each_worker_talks_to_its_own_policy_server(cluster: dict[str, str], tmp_path: Path) -> None:
+def test_workers_talk_to_their_own_servers_and_share_one_by_disjoint_environment_ids(cluster: dict[str, str],
+                                                                                   tmp_path: Path) -> None:
+    """Three workers of one slot each and `policy.url` listing two servers: workers 0 and 2 talk to the first, worker
+    1 to the second (round robin). Both serve a policy that keeps state per environment id (episode_keeper.py), so
+    workers 0 and 2 must address the first by different ids, or their episodes run under one id and fail."""
     pack = Path(__file__).resolve().parents[1] / "specs" / "pack"
     ports = []
     for _ in range(2):
@@ -154,17 +161,21 @@ def test_each_worker_talks_to_its_own_policy_server(cluster: dict[str, str], tmp
             s.bind(("127.0.0.1", 0))
             ports.append(s.getsockname()[1])
     logs = [tmp_path / f"server{i}.log" for i in range(2)]
-    servers = [subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=zero", f"port={port}"],
-                                stdout=subprocess.DEVNULL, stderr=log.open("w")) for port, log in zip(ports, logs)]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parent)}
+    servers = [subprocess.Popen([sys.executable, "-m", "xpolicylab.serve", "policy=episode_keeper:EpisodeKeeper",
+                                 f"port={port}"], stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
+               for port, log in zip(ports, logs)]
     try:
         urls = ",".join(f"ws://127.0.0.1:{port}" for port in ports)
-        done = dojo(["run", f"packs=[{pack}]", "suite=mini_test", "episodes=1", "policy=remote",
-                     f"policy.url=[{urls}]", *on_ray(cluster), f"results={tmp_path / 'r.sqlite'}"], cluster, tmp_path)
+        done = dojo(["run", f"packs=[{pack}]", "suite=mini_test", "episodes=2", "policy=remote", "num_envs=1",
+                     f"policy.url=[{urls}]", *on_ray(cluster, workers=3), "launcher.cpus_per_worker=0.5",
+                     f"results={tmp_path / 'r.sqlite'}"], cluster, tmp_path)
     finally:
         for server in servers:
             server.terminate()
             server.wait(timeout=30)
     assert done.returncode == 0, done.stderr
-    assert len(episodes(tmp_path / "r.sqlite")) == 2
+    reasons = [reason for *_, reason in episodes(tmp_path / "r.sqlite").values()]
+    assert len(reasons) == 4 and not [r for r in reasons if r and r.startswith("policy_error")], reasons
     opened = [log.read_text().count("connection open") for log in logs]
-    assert opened == [2, 1]  # the first server: this run's own look at the policy, and worker 0; the second: worker 1
+    assert opened == [3, 1]  # the first: this run's own look at the policy, and workers 0 and 2; the second: 1
