@@ -39,7 +39,7 @@ import time
 from collections import Counter, defaultdict
 from importlib.metadata import version
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import mujoco
 import numpy as np
@@ -162,29 +162,35 @@ def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup
 
 def _alone(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
            placement: Placement, graphs: object | None, on_streams: bool) -> dict[str, Any]:
-    """Each task's buckets by themselves at the mix's whole batch, and `ideal_mix`: the mix's rate were every task
-    to run at its own full-batch rate for its share of the batch (a share s_t of the environments at i_t
-    interactions/s takes s_t / i_t of a second per interaction of the batch, so the mix's best is
-    1 / sum(s_t / i_t)). Measured on the 24 simulation tasks (H200, 2026-11-28, 16,384 environments, streams) it
-    is 46% of `stack_blocks` alone: the scenes of a mix, not only its engine, decide how near one task it runs."""
+    """Each task's buckets by themselves at the mix's whole batch, and the mix's best from their rates
+    (`ideal_mix`)."""
     total = sum(sizes)
     by_task: dict[tuple[str, ...], list[tuple[Bucket, int]]] = defaultdict(list)
     for bucket, n in zip(buckets, sizes):
         by_task[bucket.tasks].append((bucket, n))
-    per_task, seconds_per_interaction, substeps = {}, 0.0, 0.0
+    per_task = {}
     for tasks, own in sorted(by_task.items()):
         own_buckets = [b for b, _ in own]
         own_sizes = [placement.padded(n) for n in split_batch(own_buckets, total)]
         rates = (_streams(own_buckets, own_sizes, steps, warmup, serial=False) if on_streams else
                  _rates([_run(own_buckets, own_sizes, impl, steps, warmup, placement, graphs)]))
-        share = sum(n for _, n in own) / total
-        per_task[",".join(tasks)] = {"share": share, "num_envs": sum(own_sizes),
+        per_task[",".join(tasks)] = {"share": sum(n for _, n in own) / total, "num_envs": sum(own_sizes),
                                      **{k: rates[k] for k in ("interactions_per_s", "physics_steps_per_s",
                                                               "setup_s")}}
-        seconds_per_interaction += share / rates["interactions_per_s"]
-        substeps += share * rates["physics_steps_per_s"] / rates["interactions_per_s"]
-    return {"per_task": per_task, "ideal_mix": {"interactions_per_s": 1.0 / seconds_per_interaction,
-                                                "physics_steps_per_s": substeps / seconds_per_interaction}}
+    return {"per_task": per_task, "ideal_mix": ideal_mix(per_task.values())}
+
+
+def ideal_mix(tasks: Iterable[Mapping[str, float]]) -> dict[str, float]:
+    """The mix's rate were every task to run at its own full-batch rate for its share of the batch: a share s_t of
+    the environments at i_t interactions/s takes s_t / i_t of a second per interaction of the batch, so the mix's
+    best is 1 / sum(s_t / i_t), and its physics steps per interaction the shares' mean of the tasks' sub-steps.
+    Measured on the 24 simulation tasks (H200, 2026-11-28, 16,384 environments, streams) it is 46% of
+    `stack_blocks` alone: the scenes of a mix, not only its engine, decide how near one task it runs."""
+    seconds = substeps = 0.0
+    for t in tasks:
+        seconds += t["share"] / t["interactions_per_s"]
+        substeps += t["share"] * t["physics_steps_per_s"] / t["interactions_per_s"]
+    return {"interactions_per_s": 1.0 / seconds, "physics_steps_per_s": substeps / seconds}
 
 
 def _device_counts(devices: Any) -> list[int]:

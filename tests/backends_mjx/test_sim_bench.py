@@ -13,7 +13,7 @@ import sys
 import pytest
 from conftest import CACHE_DIR, toy_plan
 
-from dojo.bench.sim_bench import bench_sim, split_batch
+from dojo.bench.sim_bench import bench_sim, ideal_mix, split_batch
 from dojo.backends.mjx.bucket import make_buckets
 from dojo.backends.mjx.merge_groups import GROWTH
 
@@ -22,7 +22,7 @@ def test_bench_sim_prints_one_json_object_with_both_modes(tmp_path):
     for s in range(2):
         toy_plan(seed=s).save(tmp_path / f"toy-{s}.json")
     cfg = {"what": "sim", "plans": str(tmp_path), "num_envs": 2, "steps": 2, "warmup": 1,
-           "backend": {"name": "mjx", "impl": "auto"}, "modes": ["heterogeneous", "homogeneous"],
+           "backend": {"name": "mjx", "impl": "auto"}, "modes": ["heterogeneous", "homogeneous", "alone"],
            "cache_dir": CACHE_DIR}
     out = json.loads(json.dumps(bench_sim(cfg)))
     assert out["impl"] == "jax" and out["num_envs"] == 2 and out["tasks"] == ["toy"]
@@ -32,6 +32,13 @@ def test_bench_sim_prints_one_json_object_with_both_modes(tmp_path):
         assert out[mode]["compilations"] == 1
     assert out["ratios"]["heterogeneous_over_homogeneous"] == pytest.approx(
         out["heterogeneous"]["interactions_per_s"] / out["homogeneous"]["interactions_per_s"])
+    # `alone` (one task here: the same bucket and batch on the jitted engine once more), and the mix against it
+    alone = out["alone"]
+    assert alone["engine"] == "heterogeneous" and list(alone["per_task"]) == ["toy"]
+    assert alone["per_task"]["toy"]["share"] == 1.0 and alone["per_task"]["toy"]["num_envs"] == 2
+    assert alone["ideal_mix"]["interactions_per_s"] == pytest.approx(alone["per_task"]["toy"]["interactions_per_s"])
+    assert out["ratios"]["heterogeneous_over_ideal_mix"] == pytest.approx(
+        out["heterogeneous"]["interactions_per_s"] / alone["ideal_mix"]["interactions_per_s"])
     assert set(out["counts"]) == {"interactions", "physics_steps"}
     assert {"device", "jax", "mujoco", "mujoco_mjx", "peak_device_bytes_per_env"} <= set(out)
 
@@ -56,28 +63,17 @@ def test_bench_sim_merged_mode_reports_its_buckets_beside_the_separate_ones(tmp_
     assert "homogeneous" not in out
 
 
-def test_bench_sim_alone_mode_runs_each_task_at_the_whole_batch_and_bounds_the_mix(tmp_path):
-    """`alone`: each of two toy tasks by itself at the mix's whole batch (2 environments: the `toy` engine is the
-    first test's program), and the mix's best from those rates, each task for its share of the batch."""
-    for k, (task, items) in enumerate({"toy": (), "pair": ("ball", "box")}.items()):
-        for s in range(2):
-            toy_plan(task=task, seed=s, items=items, block_size=0.03 + 0.005 * k).save(tmp_path / f"{task}-{s}.json")
-    cfg = {"what": "sim", "plans": str(tmp_path), "num_envs": 2, "steps": 2, "warmup": 1,
-           "backend": {"name": "mjx", "impl": "jax"}, "modes": ["alone"], "cache_dir": CACHE_DIR}
-    out = json.loads(json.dumps(bench_sim(cfg)))
-    assert out["bucket_sizes"] == [1, 1] and out["alone"]["engine"] == "heterogeneous"
-    per_task = out["alone"]["per_task"]
-    assert sorted(per_task) == ["pair", "toy"]
-    for rates in per_task.values():
-        assert rates["num_envs"] == 2 and rates["share"] == 0.5 and rates["interactions_per_s"] > 0
-        assert rates["physics_steps_per_s"] == pytest.approx(10 * rates["interactions_per_s"])
-    ideal = out["alone"]["ideal_mix"]
-    assert ideal["interactions_per_s"] == pytest.approx(1 / sum(0.5 / r["interactions_per_s"]
-                                                              for r in per_task.values()))
-    slowest, fastest = sorted(r["interactions_per_s"] for r in per_task.values())
-    assert slowest <= ideal["interactions_per_s"] <= fastest
-    assert ideal["physics_steps_per_s"] == pytest.approx(10 * ideal["interactions_per_s"])
-    assert "heterogeneous" not in out and out["ratios"] == {}
+def test_the_ideal_mix_gives_each_task_its_share_of_the_time_at_its_own_rate():
+    """Three tasks with a quarter, a quarter and half of the batch, at 10, 40 and 20 interactions/s (sub-steps 10, 10
+    and 5): per interaction of the batch 0.025 + 0.00625 + 0.025 s, and 7.5 physics steps."""
+    tasks = [{"share": 0.25, "interactions_per_s": 10.0, "physics_steps_per_s": 100.0},
+             {"share": 0.25, "interactions_per_s": 40.0, "physics_steps_per_s": 400.0},
+             {"share": 0.5, "interactions_per_s": 20.0, "physics_steps_per_s": 100.0}]
+    ideal = ideal_mix(tasks)
+    assert ideal["interactions_per_s"] == pytest.approx(1 / 0.05625)
+    assert ideal["physics_steps_per_s"] == pytest.approx(7.5 / 0.05625)
+    assert 10.0 < ideal["interactions_per_s"] < 40.0
+    assert ideal_mix([{**tasks[0], "share": 1.0}])["interactions_per_s"] == pytest.approx(10.0)  # one task: itself
 
 
 def test_split_batch_is_proportional_and_complete():
