@@ -11,6 +11,8 @@ Design choices, and why:
 * A malformed frame is answered with an ``error`` frame (native) or openpi's text-frame + close 1011, and only
   ever affects its own connection. Frames over ``max_frame_mb`` are refused by the WebSocket layer with close
   code 1009 before they are buffered.
+* Environment ids are kept apart between clients (``xpolicylab.env_ids``): the model sees a client's ids as sent
+  unless another open connection holds them, and forgets a connection's environments when it closes.
 * Shared memory (``capabilities.shared_memory``, the ``shared_memory`` option): a client on this host may send
   large arrays as references to its own segments; each connection opens a segment once, and only a loopback
   peer's references are read (``xpolicylab.shm``). The arrays are copied out before the model sees them.
@@ -40,6 +42,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from xpolicylab import codec, shm, transport
+from xpolicylab.env_ids import ConnectionIds, EnvIdSpace
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, as_model
 from xpolicylab.protocol import (PROTOCOL_VERSION, REQUESTS, SERVER_NAME, UPSTREAM_FORMAT, Frame, MessageType,
@@ -129,6 +132,7 @@ class PolicyServer:
         self._metadata = self.model.metadata
         self._worker = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="xpolicylab-model")
         self._server: Server | None = None
+        self._env_ids = EnvIdSpace()
 
     @property
     def port(self) -> int:
@@ -193,16 +197,17 @@ class PolicyServer:
             raise ProtocolError(ErrorCode.TIMEOUT,
                                 f"the model took longer than {self.config.request_timeout_s} s") from None
 
-    async def _infer(self, payload: dict[str, Any]) -> dict[str, Any]:
+    async def _infer(self, payload: dict[str, Any], ids: ConnectionIds) -> dict[str, Any]:
         obs_list, env_ids = _observations(payload)
         model = self.model
+        model_ids = None if env_ids is None else ids.to_model(env_ids)
 
         def run() -> Any:
-            if env_ids is None:
+            if model_ids is None:
                 model.update_obs(obs_list[0])
                 return model.get_action()
-            model.update_obs_batch(obs_list, env_ids)
-            return model.get_action_batch(env_ids)
+            model.update_obs_batch(obs_list, model_ids)
+            return model.get_action_batch(model_ids)
 
         start = time.perf_counter()
         try:
@@ -257,10 +262,12 @@ class PolicyServer:
             raise ProtocolError(code, f"{name} failed: {type(exc).__name__}: {exc}") from exc
         return {"ok": True} if result is None else {"ok": True, "result": result}
 
-    async def _reset(self, frame: Frame) -> dict[str, Any]:
+    async def _reset(self, frame: Frame, ids: ConnectionIds) -> dict[str, Any]:
         env_ids = frame.payload.get("env_ids")
         if env_ids is not None and not isinstance(env_ids, list):
             raise ProtocolError(ErrorCode.INVALID_FRAME, "'env_ids' must be a list", {"field": "env_ids"})
+        if env_ids is not None:
+            env_ids = ids.to_model(_env_ids({"env_ids": env_ids}, len(env_ids)))
         model = self.model
         try:
             await self._call_model(model.reset if env_ids is None else (lambda: model.reset_batch(env_ids)))
@@ -270,16 +277,27 @@ class PolicyServer:
             raise ProtocolError(ErrorCode.RESET_FAILED, f"reset failed: {type(exc).__name__}: {exc}") from exc
         return {"ok": True}
 
-    async def _dispatch(self, frame: Frame) -> Frame:
+    async def _forget(self, ids: ConnectionIds) -> None:
+        """A connection closed: its environments are released, and the model forgets them before another
+        client is given their ids (the model's one worker thread runs requests in order)."""
+        released = ids.release()
+        if not released:
+            return
+        try:
+            await self._call_model(lambda: self.model.reset_batch(released))
+        except Exception as exc:  # the connection is gone: nobody to tell but the log
+            logger.warning("forgetting the environments of a closed connection: %s: %s", type(exc).__name__, exc)
+
+    async def _dispatch(self, frame: Frame, ids: ConnectionIds) -> Frame:
         kind = frame.message_type
         if kind is MessageType.HELLO:
             return frame.reply(MessageType.HELLO_ACK, self.hello_payload())
         if kind is MessageType.HEARTBEAT:
             return frame.reply(MessageType.HEARTBEAT_ACK, {"ok": True, "server_time": time.time()})
         if kind is MessageType.INFER:
-            return frame.reply(MessageType.INFER_RESULT, await self._infer(frame.payload))
+            return frame.reply(MessageType.INFER_RESULT, await self._infer(frame.payload, ids))
         if kind is MessageType.RESET:
-            return frame.reply(MessageType.RESET_RESULT, await self._reset(frame))
+            return frame.reply(MessageType.RESET_RESULT, await self._reset(frame, ids))
         if kind is MessageType.PREPARE_CASE:
             meta = dict(frame.payload)
             if frame.action_case_id is not None:
@@ -292,10 +310,11 @@ class PolicyServer:
         raise ProtocolError(ErrorCode.UNKNOWN_MESSAGE_TYPE, f"{kind.value!r} is not a request a server answers",
                             {"message_type": kind.value, "requests": sorted(t.value for t in REQUESTS)})
 
-    async def _respond(self, ws: ServerConnection, frame: Frame, segments: shm.SegmentCache) -> None:
+    async def _respond(self, ws: ServerConnection, frame: Frame, segments: shm.SegmentCache,
+                       ids: ConnectionIds) -> None:
         try:
             segments.resolve(frame.payload)  # copies: the model keeps nothing of the client's segments
-            reply = await self._dispatch(frame)
+            reply = await self._dispatch(frame, ids)
         except ProtocolError as exc:
             reply = frame.error(exc)
         except Exception as exc:  # a bug in the server itself must not take the connection down silently
@@ -312,6 +331,7 @@ class PolicyServer:
     async def _serve_native(self, ws: ServerConnection) -> None:
         tasks: set[asyncio.Task[None]] = set()
         segments = shm.SegmentCache(self._shared_memory_refusal(ws))
+        ids = self._env_ids.connection()
         try:
             while True:
                 is_text, parts = await transport.recv_message(ws)
@@ -326,16 +346,24 @@ class PolicyServer:
                 if frame.message_type is MessageType.CLOSE:
                     await ws.close(reason="client sent close")
                     return
-                task = asyncio.create_task(self._respond(ws, frame, segments))
+                task = asyncio.create_task(self._respond(ws, frame, segments, ids))
                 tasks.add(task)
                 task.add_done_callback(tasks.discard)
         finally:
             if tasks:
                 await asyncio.gather(*tasks, return_exceptions=True)
             segments.close()
+            await self._forget(ids)
 
     async def _serve_openpi(self, ws: ServerConnection) -> None:
         await ws.send(codec.encode(self._metadata.to_dict(), codec.Dialect.OPENPI))
+        ids = self._env_ids.connection()
+        try:
+            await self._answer_openpi(ws, ids)
+        finally:
+            await self._forget(ids)
+
+    async def _answer_openpi(self, ws: ServerConnection, ids: ConnectionIds) -> None:
         while True:
             is_text, parts = await transport.recv_message(ws)
             try:
@@ -346,7 +374,7 @@ class PolicyServer:
                     raise ProtocolError(ErrorCode.INVALID_FRAME, "an observation must be a map")
                 payload = obs if "observations" in obs else {"observation": obs}
                 start = time.perf_counter()
-                reply = await self._infer(payload)
+                reply = await self._infer(payload, ids)
                 reply["server_timing"] = {"infer_ms": (time.perf_counter() - start) * 1e3}
                 await transport.send_chunks(ws, codec.encode_chunks(reply, codec.Dialect.OPENPI))
             except (ProtocolError, TypeError, ValueError) as exc:

@@ -1,7 +1,7 @@
 """A served policy that keeps state per environment id, as a policy with frame history or memory does: from a reset
 of an id to the next, every observation under it must be of one episode, each at a later step than the last. Two
-evaluators that share a server and address their environments by the same ids break that, and it fails the
-request (the episode then ends as a policy error)."""
+evaluators whose episodes reached it under the same id would break that, and it fails the request (the episode
+then ends as a policy error)."""
 
 from __future__ import annotations
 
