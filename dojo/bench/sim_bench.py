@@ -13,9 +13,10 @@
   with the same graphs on one stream beside it;
 - `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped;
 - `alone` (by name): each task by itself at the whole batch, on the engine of the mix (`streams` when that is
-  measured, else the jitted one), and `ideal_mix`, what those rates allow the mix at best: a task whose scenes cost
-  five times another's per step costs so in any batch, so no engine runs the mix faster than its tasks alone,
-  each for its share of the batch (the mix's `X_over_ideal_mix` is how close an engine comes).
+  measured, else the jitted one), and `ideal_mix`, the mix's rate were each task to run at its own full-batch
+  rate for its share of the batch: a task whose scenes cost five times another's per step costs so in any batch,
+  so an engine passes it only by running tasks faster side by side than alone (the mix's `X_over_ideal_mix` is
+  how close an engine comes).
 
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
@@ -182,8 +183,8 @@ def _alone(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: in
 
 def ideal_mix(tasks: Iterable[Mapping[str, float]]) -> dict[str, float]:
     """The mix's rate were every task to run at its own full-batch rate for its share of the batch: a share s_t of
-    the environments at i_t interactions/s takes s_t / i_t of a second per interaction of the batch, so the mix's
-    best is 1 / sum(s_t / i_t), and its physics steps per interaction the shares' mean of the tasks' sub-steps.
+    the environments at i_t interactions/s takes s_t / i_t of a second per interaction of the batch, so the mix
+    then runs at 1 / sum(s_t / i_t), with the shares' mean of the tasks' sub-steps per interaction.
     Measured on the 24 simulation tasks (H200, 2026-11-28, 16,384 environments, streams) it is 46% of
     `stack_blocks` alone: the scenes of a mix, not only its engine, decide how near one task it runs."""
     seconds = substeps = 0.0
