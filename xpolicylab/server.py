@@ -100,6 +100,11 @@ def _env_ids(payload: dict[str, Any], count: int) -> list[Any]:
     if not isinstance(env_ids, list) or len(env_ids) != count:
         raise ProtocolError(ErrorCode.INVALID_FRAME, "a batched request needs 'env_ids', a list as long as "
                             "'observations'", {"field": "env_ids"})
+    return _distinct_ids(env_ids)
+
+
+def _distinct_ids(env_ids: list[Any]) -> list[Any]:
+    """`env_ids` as given, once each is known to be a string or an integer and none repeats."""
     if not all(isinstance(e, (str, int)) and not isinstance(e, bool) for e in env_ids):
         raise ProtocolError(ErrorCode.INVALID_FRAME, "env ids must be strings or integers", {"field": "env_ids"})
     if len(set(env_ids)) != len(env_ids):
@@ -267,7 +272,7 @@ class PolicyServer:
         if env_ids is not None and not isinstance(env_ids, list):
             raise ProtocolError(ErrorCode.INVALID_FRAME, "'env_ids' must be a list", {"field": "env_ids"})
         if env_ids is not None:
-            env_ids = ids.to_model(_env_ids({"env_ids": env_ids}, len(env_ids)))
+            env_ids = ids.to_model(_distinct_ids(env_ids))
         model = self.model
         try:
             await self._call_model(model.reset if env_ids is None else (lambda: model.reset_batch(env_ids)))

@@ -34,7 +34,7 @@ import json
 import logging
 import time
 from collections import Counter, deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -157,6 +157,10 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     ran = 0
     split = TimeSplit()
 
+    def addressed(ids: Iterable[int]) -> list[int]:
+        """The environment ids the policy knows these slots by."""
+        return [env_id_base + i for i in ids]
+
     def finish(ended: list[tuple[int, bool, str | None]], last_obs: dict[int, Any]) -> None:
         """Record ended episodes (durably, before anything else happens to their slots), then refill the slots
         from the queue or retire them."""
@@ -187,7 +191,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                 for i, first_obs in zip(refill, backend.reset(refill, [plan_of(it) for it in items])):
                     obs[i] = first_obs
                 if rule is None:
-                    policy.reset([env_id_base + i for i in refill])
+                    policy.reset(addressed(refill))
                 backend.prefetch([plan_of(todo[j]) for j in range(min(len(refill), len(todo)))])
 
     def host_step() -> StepResult | None:
@@ -197,8 +201,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         if need:
             try:
                 with split.phase("policy"):
-                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need],
-                                        [env_id_base + i for i in need])
+                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], addressed(need))
             except ProtocolError as err:
                 if err.code != ErrorCode.INFER_FAILED:
                     raise  # the link itself failed: stop, and resume these episodes later
@@ -237,7 +240,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             backend.load([s.plan for s in slots.values()])
             obs = dict(zip(slots, backend.reset(list(slots))))
             if rule is None:
-                policy.reset([env_id_base + i for i in slots])
+                policy.reset(addressed(slots))
             backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
         while slots:
             result = host_step() if rule is None else device_step()

@@ -155,7 +155,8 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
     out: dict[str, Any] = {}
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
-    for name, one_stream in (("concurrent", False), ("serial", True))[:2 if serial else 1]:
+    runs = [("concurrent", False), ("serial", True)] if serial else [("concurrent", False)]
+    for name, one_stream in runs:
         start = time.perf_counter()
         engine = StreamEngine(buckets, sizes, controls, serial=one_stream)
         setup = time.perf_counter() - start
