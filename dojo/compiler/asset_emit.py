@@ -320,6 +320,11 @@ def apply_background(world: mujoco.MjSpec, asset: dict[str, Any], *, base_dir: P
     return floor.name
 
 
+LIGHT_DEFAULTS: dict[str, tuple[float, float, float]] = {
+    "diffuse": (0.7, 0.7, 0.7), "ambient": (0.0, 0.0, 0.0), "specular": (0.3, 0.3, 0.3)}
+"""A lighting preset's light colours where it names none (the headlight's are MuJoCo's own)."""
+
+
 def apply_lighting(world: mujoco.MjSpec, asset: dict[str, Any]) -> tuple[str, ...]:
     """Set the headlight and add the preset's lights (``light/<name>``); returns the light names."""
     _require(asset, "lighting")
@@ -333,8 +338,9 @@ def apply_lighting(world: mujoco.MjSpec, asset: dict[str, Any]) -> tuple[str, ..
         ltype = mujoco.mjtLightType.mjLIGHT_DIRECTIONAL if spec.get("directional") else mujoco.mjtLightType.mjLIGHT_SPOT
         light = world.worldbody.add_light(
             name=f"light/{spec['name']}", pos=list(spec["pos"]), dir=list(spec["dir"]), type=ltype,
-            diffuse=list(spec.get("diffuse", (0.7, 0.7, 0.7))), ambient=list(spec.get("ambient", (0.0, 0.0, 0.0))),
-            specular=list(spec.get("specular", (0.3, 0.3, 0.3))), castshadow=bool(spec.get("castshadow", True)),
+            diffuse=list(spec.get("diffuse", LIGHT_DEFAULTS["diffuse"])),
+            ambient=list(spec.get("ambient", LIGHT_DEFAULTS["ambient"])),
+            specular=list(spec.get("specular", LIGHT_DEFAULTS["specular"])), castshadow=bool(spec.get("castshadow", True)),
             cutoff=float(spec.get("cutoff", 45.0)),
         )
         names.append(light.name)

@@ -123,7 +123,16 @@ def test_asset_sanity_measures_what_is_wrong(tmp_path: Path) -> None:
     (pack / "assets" / "lead_feather.yaml").write_text(
         "kind: asset\nversion: 1\nid: lead_feather\nclass: rigid\ncategory: thing\nnames: [thing]\nmass: 4.0\n"
         "geoms:\n  - {type: box, size: [0.01, 0.01, 0.01]}\n")
+    (pack / "assets" / "glare.yaml").write_text(  # the standard rig as it was before 2026-11-29
+        "kind: asset\nversion: 1\nid: glare\nclass: lighting\ncategory: lighting\nnames: [glare]\nlighting:\n"
+        "  headlight: {ambient: [0.3, 0.3, 0.3], diffuse: [0.4, 0.4, 0.4]}\n"
+        "  lights:\n    - {name: key, pos: [0, -1, 2.5], dir: [0, 0.4, -1], diffuse: [0.6, 0.6, 0.6]}\n"
+        "    - {name: fill, pos: [1, 1, 2.5], dir: [-0.4, -0.4, -1], diffuse: [0.3, 0.3, 0.5]}\n")
     library = SpecLibrary.load([pack], strict=False)
+    _, findings = asset_sanity(library.get("asset", "glare"))
+    assert len(findings) == 1 and findings[0].warning
+    assert "lighting 'glare' adds up to (1.6, 1.6, 1.8) of ambient and diffuse light" in findings[0].message
+    assert findings[0].message.split(": ", 1)[0].endswith("glare.yaml:8:3")  # at the rig
     _, findings = asset_sanity(library.get("asset", "inside_out"))
     assert [f.message.split(": ", 1)[1] for f in findings] == [
         "collision mesh inside_out.obj encloses a volume of -0.00048 m^3: its faces are wound inward (inside out) "
