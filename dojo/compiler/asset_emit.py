@@ -340,8 +340,8 @@ def apply_lighting(world: mujoco.MjSpec, asset: dict[str, Any]) -> tuple[str, ..
             name=f"light/{spec['name']}", pos=list(spec["pos"]), dir=list(spec["dir"]), type=ltype,
             diffuse=list(spec.get("diffuse", LIGHT_DEFAULTS["diffuse"])),
             ambient=list(spec.get("ambient", LIGHT_DEFAULTS["ambient"])),
-            specular=list(spec.get("specular", LIGHT_DEFAULTS["specular"])), castshadow=bool(spec.get("castshadow", True)),
-            cutoff=float(spec.get("cutoff", 45.0)),
+            specular=list(spec.get("specular", LIGHT_DEFAULTS["specular"])),
+            castshadow=bool(spec.get("castshadow", True)), cutoff=float(spec.get("cutoff", 45.0)),
         )
         names.append(light.name)
     return tuple(names)

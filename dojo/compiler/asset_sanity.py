@@ -81,7 +81,8 @@ def _bodies(data: dict[str, Any]) -> list[tuple[str, list[dict[str, Any]], float
 
 
 def asset_sanity(asset: Spec) -> tuple[AssetFigures | None, list[Finding]]:
-    """Check one asset spec (rigid or articulated; other classes have no body): (figures, findings)."""
+    """Check one asset spec: (figures, findings). Rigid and articulated assets get figures; a lighting preset only
+    findings (`LIGHT_SUM_MAX`); other classes have nothing to check."""
     data = asset.data
     if data["class"] == "lighting":
         return None, _lighting_findings(asset)
