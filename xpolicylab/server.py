@@ -269,9 +269,9 @@ class PolicyServer:
 
     async def _reset(self, frame: Frame, ids: ConnectionIds) -> dict[str, Any]:
         env_ids = frame.payload.get("env_ids")
-        if env_ids is not None and not isinstance(env_ids, list):
-            raise ProtocolError(ErrorCode.INVALID_FRAME, "'env_ids' must be a list", {"field": "env_ids"})
         if env_ids is not None:
+            if not isinstance(env_ids, list):
+                raise ProtocolError(ErrorCode.INVALID_FRAME, "'env_ids' must be a list", {"field": "env_ids"})
             env_ids = ids.to_model(_distinct_ids(env_ids))
         model = self.model
         try:
