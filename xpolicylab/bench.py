@@ -3,7 +3,9 @@
 The server runs in a separate process (``python -m xpolicylab.serve``), as in a real evaluation: client and
 server in one process would share one interpreter lock and measure the GIL instead of the protocol. Each of the
 ``shared_memory`` modes listed is measured in turn against the same server, so socket and shared memory compare
-in one run; ``mb_per_s`` counts the observations' bytes either way.
+in one run; ``mb_per_s`` counts the observations' bytes either way. So are the ``layouts`` of a batch: ``columns``
+(one array per camera for the batch, to a server that reads them) and ``list`` (one observation per environment).
+The observations' images are rows of one array per camera, as a batched simulator renders them.
 """
 
 from __future__ import annotations
@@ -37,6 +39,9 @@ class BenchConfig:
     embodiment: str = "arx_x5_bimanual"
     url: str | None = None
     shared_memory: tuple[str, ...] = ("auto",)
+    layouts: tuple[str, ...] = ("columns",)
+
+LAYOUTS = ("columns", "list")
 
 
 @contextmanager
@@ -65,15 +70,15 @@ def spawned_server(protocol: str, timeout_s: float = 60.0, options: Sequence[str
             proc.wait()
 
 
-def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: str) -> dict[str, Any]:
+def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: str, layout: str) -> dict[str, Any]:
     emb = get_embodiment(cfg.embodiment)
-    obs_list = synthetic_batch(emb, cfg.batch, cfg.cameras, cfg.width, cfg.height)
+    obs_list = synthetic_batch(emb, cfg.batch, cfg.cameras, cfg.width, cfg.height, stacked=True)
     env_ids = list(range(cfg.batch))
     request_bytes = sum(memoryview(c).nbytes for c in codec.encode_chunks(
         {"observations": obs_list, "env_ids": env_ids}, codec.Dialect(protocol)))
     with PolicyClient(url, protocol, recv_timeout_s=120.0, max_connect_attempts=8,
-                      shared_memory=shared_memory) as client:
-        used_shared_memory = client.uses_shared_memory
+                      shared_memory=shared_memory, columnar=layout == "columns") as client:
+        used_shared_memory, used_columns = client.uses_shared_memory, client.sends_columns
         for _ in range(cfg.warmup):
             client.infer_batch(obs_list, env_ids)
         batch = LatencyStats()
@@ -97,23 +102,27 @@ def _measure(url: str, protocol: str, cfg: BenchConfig, shared_memory: str) -> d
         "single_rtt_ms_p99": round(single.percentile(99), 2),
         "request_mb": round(request_bytes / 1e6, 2),
         "shared_memory": used_shared_memory,
+        "columns": used_columns,
     }
 
 
 def run_bench(cfg: BenchConfig) -> dict[str, Any]:
-    """Measure every dialect in ``cfg.protocols`` (the native one in every ``cfg.shared_memory`` mode); returns the
-    figures the bench prints as one JSON line, under the dialect's name, or ``<dialect>_shm_<mode>`` when several
-    modes are measured."""
+    """Measure every dialect in ``cfg.protocols`` (the native one in every ``cfg.shared_memory`` mode and every
+    layout of ``cfg.layouts``); returns the figures the bench prints as one JSON line, under the dialect's name,
+    followed by ``_shm_<mode>`` when several modes are measured and by ``_<layout>`` when several layouts are."""
     result: dict[str, Any] = {
         "bench": "xpolicylab_loopback", "policy": "zero", "batch": cfg.batch,
         "images": f"{len(cfg.cameras)}x{cfg.width}x{cfg.height}", "n": cfg.n, "single_n": cfg.single_n,
     }
     for protocol in cfg.protocols:
         modes = cfg.shared_memory if protocol == "xpolicylab" else ("off",)
+        layouts = cfg.layouts if protocol == "xpolicylab" else ("list",)
         with nullcontext(cfg.url) if cfg.url else spawned_server(protocol) as url:
             for mode in modes:
-                key = protocol if len(modes) == 1 else f"{protocol}_shm_{mode}"
-                result[key] = _measure(url, protocol, cfg, mode)
+                for layout in layouts:
+                    key = protocol + (f"_shm_{mode}" if len(modes) > 1 else "") + (
+                        f"_{layout}" if len(layouts) > 1 else "")
+                    result[key] = _measure(url, protocol, cfg, mode, layout)
     return result
 
 
@@ -122,6 +131,14 @@ def protocols_arg(values: Sequence[str]) -> tuple[str, ...]:
     bad = [p for p in values if p not in ("xpolicylab", "openpi")]
     if bad or not values:
         raise ValueError(f"protocols must be a subset of [xpolicylab,openpi], got {list(values)}")
+    return tuple(values)
+
+
+def layouts_arg(values: Sequence[str]) -> tuple[str, ...]:
+    """Validate the ``layouts`` option: one or more of columns, list."""
+    bad = [v for v in values if v not in LAYOUTS]
+    if bad or not values:
+        raise ValueError(f"layouts must list one or more of {', '.join(LAYOUTS)}, got {list(values)}")
     return tuple(values)
 
 

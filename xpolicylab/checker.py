@@ -22,7 +22,7 @@ from xpolicylab.embodiments import ACTION_MODES, CAMERAS, Embodiment, get_embodi
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import PolicyMetadata
 from xpolicylab.observations import noise_images, synthetic_observation
-from xpolicylab.protocol import UPSTREAM_FORMAT, Frame, parse_frame
+from xpolicylab.protocol import UPSTREAM_FORMAT, Frame, is_batch, parse_frame
 
 #: Slack on joint limits, radians: float32 rounding of a pose sitting exactly on its limit must pass.
 LIMIT_TOL = 1e-3
@@ -182,7 +182,7 @@ class WireAudit:
             if not isinstance(wire, dict):
                 raise ProtocolError(ErrorCode.INVALID_FRAME, "a frame must be a map")
             departures += envelope_departures(wire, request)
-            batched = request is not None and "observations" in request.payload
+            batched = request is not None and is_batch(request.payload)
             departures += payload_departures(parse_frame(wire), batched)
         except ProtocolError as exc:
             departures = [f"frame: {exc.message}"]
@@ -191,6 +191,23 @@ class WireAudit:
 
     def problems(self) -> list[str]:
         return [f"{text} ({count} of {self.replies} replies)" for text, count in self.counts.items()]
+
+
+def _check_batch(report: CheckReport, name: str, client: PolicyClient, obs_list: list[dict[str, Any]],
+                 emb: Embodiment, meta: PolicyMetadata, chunk_size: int) -> None:
+    """One batched request of ``obs_list``, and its reply's chunks checked, as step ``name`` of ``report``."""
+    count = len(obs_list)
+    ok, batch = _step(report, name, lambda: client.infer_batch(obs_list, list(range(count))), record=False)
+    if not ok:
+        return
+    dim = emb.action_dim(meta.action_mode)
+    if not isinstance(batch, np.ndarray) or batch.ndim != 3 or batch.shape[0] != count:
+        report.add(name, [f"batched reply must be [{count}, K, {dim}], got {list(getattr(batch, 'shape', []))}"])
+        return
+    how = ("one request each (no capabilities.batch_infer)" if not client.batches
+           else "in one request, as columns" if client.sends_columns else "in one request")
+    report.add(name, [f"env {i}: {p}" for i, chunk in enumerate(batch)
+                      for p in validate_chunk(chunk, emb, meta.action_mode, chunk_size)], f"{count} environments {how}")
 
 
 def run_check(cfg: CheckConfig) -> CheckReport:
@@ -230,18 +247,11 @@ def run_check(cfg: CheckConfig) -> CheckReport:
         if cfg.batch > 0 and (cfg.protocol == "xpolicylab" or meta.batch):
             obs_list = [synthetic_observation(emb, cfg.cameras, cfg.width, cfg.height, depth=cfg.depth, episode=i,
                                               seed=cfg.seed + i, images=images) for i in range(cfg.batch)]
-            ok, batch = _step(report, "infer_batch", lambda: client.infer_batch(obs_list, list(range(cfg.batch))),
-                              record=False)
-            if ok:
-                dim = emb.action_dim(meta.action_mode)
-                if not isinstance(batch, np.ndarray) or batch.ndim != 3 or batch.shape[0] != cfg.batch:
-                    report.add("infer_batch", [f"batched reply must be [{cfg.batch}, K, {dim}], got "
-                                               f"{list(getattr(batch, 'shape', []))}"])
-                else:
-                    report.add("infer_batch", [f"env {i}: {p}" for i, chunk in enumerate(batch)
-                                               for p in validate_chunk(chunk, emb, meta.action_mode, chunk_size)],
-                               f"{cfg.batch} environments " + ("in one request" if client.batches else
-                                                                "one request each (no capabilities.batch_infer)"))
+            # Both forms of a batch a server advertises: the list, and the columns where it reads them.
+            forms = [("infer_batch", False)] + [("infer_columns", True)] * client.sends_columns
+            for name, columnar in forms:
+                client.columnar = columnar
+                _check_batch(report, name, client, obs_list, emb, meta, chunk_size)
         if cfg.protocol == "xpolicylab":
             _step(report, "heartbeat", client.heartbeat)
         _step(report, "trial_end", lambda: client.trial_end({"success": False, "score": 0.0}))

@@ -74,6 +74,8 @@ BENCH_OPTIONS = (
     Option("url", "str", None, "bench this running zero-policy server instead of spawning one per dialect"),
     Option("shared_memory", "list", ("auto",), "client modes to measure in turn, e.g. [off,on]: auto | on | off "
            "(large arrays through /dev/shm; xpolicylab dialect, openpi always off)"),
+    Option("layouts", "list", ("columns",), "batch layouts to measure in turn, e.g. [list,columns]: columns (one "
+           "array per camera for the batch) | list (one observation per environment); xpolicylab dialect"),
 )
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -215,11 +217,12 @@ def bench_main(args: Sequence[str]) -> int:
         print(_help("bench"))
         return 0
     opts, _ = parse(args, BENCH_OPTIONS, "xpolicylab bench")
-    from xpolicylab.bench import BenchConfig, protocols_arg, run_bench, shared_memory_arg
+    from xpolicylab.bench import BenchConfig, layouts_arg, protocols_arg, run_bench, shared_memory_arg
 
     try:
         protocols = protocols_arg(opts.pop("protocols"))
         opts["shared_memory"] = shared_memory_arg(opts["shared_memory"])
+        opts["layouts"] = layouts_arg(opts["layouts"])
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
     opts["cameras"] = tuple(opts["cameras"])

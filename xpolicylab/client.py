@@ -15,6 +15,9 @@
   counterpart and are local no-ops.
 * ``shared_memory`` (``auto``: when the server is on this host and advertises it; ``on``; ``off``): an infer
   request's large arrays go through ``/dev/shm`` instead of the socket (``xpolicylab.shm``); native dialect only.
+* ``columnar`` (on by default): a batch whose observations share one layout goes as columns (``xpolicylab.columns``)
+  to a server that advertises ``capabilities.columnar_batch``: one array per camera for the whole batch instead of
+  one per environment.
 """
 
 from __future__ import annotations
@@ -33,12 +36,12 @@ import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
-from xpolicylab import codec, shm, transport
+from xpolicylab import codec, columns, shm, transport
 from xpolicylab.conformance import fatal_problem
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Observation, PolicyMetadata
-from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, encode_frame, parse_frame,
-                                 readable_ids)
+from xpolicylab.protocol import (PLACEHOLDER_ID, REPLY_TO, Frame, MessageType, encode_frame, is_batch,
+                                 parse_frame, readable_ids)
 from xpolicylab.stats import LatencyStats
 
 logger = logging.getLogger(__name__)
@@ -69,12 +72,14 @@ class AsyncPolicyClient:
         max_frame_mb: float = 512.0,
         observer: ReplyObserver | None = None,
         shared_memory: str | bool = "auto",
+        columnar: bool = True,
     ) -> None:
         if protocol not in ("xpolicylab", "openpi"):
             raise ValueError(f"protocol must be 'xpolicylab' or 'openpi', got {protocol!r}")
         self.shared_memory = shm.mode(shared_memory)
         if protocol == "openpi" and self.shared_memory == "on":
             raise ValueError("shared_memory=on needs the xpolicylab dialect; openpi servers do not read references")
+        self.columnar = columnar
         self.url = url
         self.protocol = protocol
         self.token = token
@@ -267,7 +272,7 @@ class AsyncPolicyClient:
         if entry is None or entry[1].done():
             return
         request, fut = entry
-        problem = fatal_problem(frame, batched="observations" in request.payload)
+        problem = fatal_problem(frame, batched=is_batch(request.payload))
         if problem is None:
             fut.set_result(frame)
         else:
@@ -433,10 +438,20 @@ class AsyncPolicyClient:
         return np.concatenate([np.asarray(r.payload["actions"]) for r in replies])
 
     def _batch_payloads(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> list[dict[str, Any]]:
-        """One ``infer`` payload per run of environments that fits in a frame (``frame_budget``)."""
-        sizes = [observation_bytes(o, shared=self._shared) for o in obs_list]
-        return [{"observations": list(obs_list[a:b]), "env_ids": list(env_ids[a:b])}
-                for a, b in batch_spans(sizes, self.frame_budget())]
+        """One ``infer`` payload per run of environments that fits in a frame (``frame_budget``): as columns when the
+        server reads them and the observations share one layout, else as a list."""
+        batch = columns.gather(obs_list) if self.sends_columns else None
+        if batch is None:
+            sizes = [observation_bytes(o, shared=self._shared) for o in obs_list]
+            return [{"observations": list(obs_list[a:b]), "env_ids": list(env_ids[a:b])}
+                    for a, b in batch_spans(sizes, self.frame_budget())]
+        payloads = []
+        for a, b in batch_spans(column_entry_bytes(batch, len(obs_list), self._shared), self.frame_budget()):
+            part = columns.take(batch, a, b)
+            # Through shared memory a column of arrays is placed row run by row run (shm.SegmentPool.lease).
+            wire = part if self._shared else columns.joined(part)
+            payloads.append({columns.KEY: wire, "env_ids": list(env_ids[a:b])})
+        return payloads
 
     def frame_budget(self) -> int:
         """Bytes of observations one request may carry: the smaller of our limit and the one the server advertises
@@ -455,6 +470,12 @@ class AsyncPolicyClient:
     def uses_shared_memory(self) -> bool:
         """Whether large arrays of infer requests go through shared memory on the current connection."""
         return self._shared
+
+    @property
+    def sends_columns(self) -> bool:
+        """Whether a batch goes as columns: the option is on and the server advertises ``columnar_batch``."""
+        capabilities = self.server_info.get("capabilities") or {}
+        return self.columnar and self.protocol == "xpolicylab" and capabilities.get("columnar_batch") is True
 
     @property
     def batches(self) -> bool:
@@ -498,6 +519,24 @@ def observation_bytes(value: Any, shared: bool = False) -> int:
     if isinstance(value, (list, tuple)):
         return sum(observation_bytes(v, shared) for v in value)
     return 8
+
+
+def column_entry_bytes(batch: dict[str, Any], count: int, shared: bool = False) -> list[int]:
+    """``observation_bytes`` of each environment's share of a columnar batch (``columns.gather``): the rows of its
+    array columns (none when they go through shared memory) and its entries of the other columns."""
+    fixed, lists = 0, []
+    stack = [batch]
+    while stack:
+        node = stack.pop()
+        for key, value in node.items():
+            fixed += observation_bytes(key)
+            if isinstance(value, dict):
+                stack.append(value)
+            elif isinstance(value, columns.Rows):
+                fixed += 0 if shared and shm.travels_shared(value) else value.row_nbytes
+            else:
+                lists.append(value)
+    return [fixed + sum(observation_bytes(column[i], shared) for column in lists) for i in range(count)]
 
 
 def batch_spans(sizes: Sequence[int], budget: int) -> list[tuple[int, int]]:
@@ -564,6 +603,18 @@ class PolicyClient:
     @property
     def reconnects(self) -> int:
         return self._client.reconnects
+
+    @property
+    def sends_columns(self) -> bool:
+        return self._client.sends_columns
+
+    @property
+    def columnar(self) -> bool:
+        return self._client.columnar
+
+    @columnar.setter
+    def columnar(self, value: bool) -> None:
+        self._client.columnar = value
 
     @property
     def batches(self) -> bool:

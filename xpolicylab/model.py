@@ -2,7 +2,9 @@
 
 A simple policy writes three methods (``reset``, ``update_obs``, ``get_action``); the batched methods default
 to looping over them, so the server can always answer a batched ``infer``. A policy that can run one forward
-pass for many environments overrides ``update_obs_batch``/``get_action_batch`` and the server advertises it.
+pass for many environments overrides ``update_obs_batch``/``get_action_batch`` and the server advertises it; one
+that wants the batch's images already stacked (``[B, H, W, 3]`` per camera, as a columnar request carries them)
+overrides ``update_obs_columns`` too.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from xpolicylab.columns import split as columns_split
 from xpolicylab.embodiments import CAMERAS
 
 Observation = dict[str, Any]
@@ -81,6 +84,12 @@ class Model:
         """Receive one observation per environment; the default keeps them for ``get_action_batch``."""
         # setdefault: subclasses that skip super().__init__() still get the batched defaults
         self.__dict__.setdefault("_pending", {}).update(zip(env_ids, obs_list, strict=True))
+
+    def update_obs_columns(self, columns: dict[str, Any], env_ids: Sequence[Hashable]) -> None:
+        """Receive a columnar batch (``xpolicylab.columns``: each array with the batch as its first axis, each other
+        value a list with one entry per environment). The default hands ``update_obs_batch`` the observations
+        it holds, environment by environment (their arrays are views of the columns)."""
+        self.update_obs_batch(columns_split(columns, len(env_ids)), env_ids)
 
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
         """Return ``float32[B, K, D]``; the default runs ``update_obs``/``get_action`` per environment."""

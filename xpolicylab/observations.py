@@ -59,8 +59,12 @@ def synthetic_observation(
 
 
 def synthetic_batch(embodiment: Embodiment, n: int, cameras: Sequence[str] = CAMERAS, width: int = 640,
-                    height: int = 480, *, step: int = 0, seed: int = 0) -> list[dict[str, Any]]:
-    """``n`` observations with distinct states; the noise images are shared to keep memory bounded."""
+                    height: int = 480, *, step: int = 0, seed: int = 0, stacked: bool = False) -> list[dict[str, Any]]:
+    """``n`` observations with distinct states. The noise images are shared to keep memory bounded, or with
+    ``stacked`` each environment's are rows of one array per camera, as a batched simulator renders them (the
+    same noise in every row)."""
     images = noise_images(cameras, width, height, seed)
+    batches = {cam: np.repeat(image[None], n, axis=0) for cam, image in images.items()} if stacked else None
     return [synthetic_observation(embodiment, cameras, width, height, step=step, episode=i, seed=seed + i,
-                                  images=images) for i in range(n)]
+                                  images={cam: b[i] for cam, b in batches.items()} if batches else images)
+            for i in range(n)]

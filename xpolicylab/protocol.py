@@ -15,7 +15,9 @@ error frame decodes in every client.
 Extension (advertised in ``hello_ack`` as ``capabilities.batch_infer``): an ``infer`` payload
 ``{observations: [obs, ...], env_ids: [id, ...]}`` is answered by one ``get_action_batch`` call with
 ``{actions: float32[B, K, D], env_ids, action_mode, latency_ms}``. A single ``infer`` stays
-``{observation}`` -> ``{actions: float32[K, D], action_mode, latency_ms}``.
+``{observation}`` -> ``{actions: float32[K, D], action_mode, latency_ms}``. Where ``capabilities.columnar_batch``
+is advertised too, the batch may come as ``{columns: {...}, env_ids}`` instead, each array stacked over the batch
+(``xpolicylab.columns``), and is answered the same way.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
 
-from xpolicylab import codec
+from xpolicylab import codec, columns
 from xpolicylab.errors import ErrorCode, ProtocolError
 
 PROTOCOL_VERSION = "1.0"
@@ -122,6 +124,12 @@ class Frame:
 def encode_frame(frame: Frame) -> list[bytes | memoryview]:
     """Encode a frame as zero-copy chunks (see ``codec.encode_chunks``)."""
     return codec.encode_chunks(frame.to_wire(), codec.Dialect.XPOLICYLAB)
+
+
+def is_batch(payload: dict[str, Any]) -> bool:
+    """Whether an ``infer`` payload asks for a batch (its reply's actions are ``[B, K, D]``), as a list or as
+    columns."""
+    return "observations" in payload or columns.KEY in payload
 
 
 def _optional(wire: dict, key: str, kinds: tuple[type, ...]) -> Any:

@@ -41,7 +41,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from xpolicylab import codec, shm, transport
+from xpolicylab import codec, columns, shm, transport
 from xpolicylab.env_ids import ConnectionIds, EnvIdSpace
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.model import Model, as_model
@@ -122,9 +122,22 @@ def _observations(payload: dict[str, Any]) -> tuple[list[dict[str, Any]], list[A
         return obs_list, _env_ids(payload, len(obs_list))
     obs = payload.get("observation")
     if not isinstance(obs, dict):
-        raise ProtocolError(ErrorCode.INVALID_FRAME, "infer payload needs 'observation' (a map) or "
-                            "'observations' + 'env_ids'", {"field": "observation"})
+        raise ProtocolError(ErrorCode.INVALID_FRAME, "infer payload needs 'observation' (a map), 'observations' + "
+                            "'env_ids' or 'columns' + 'env_ids'", {"field": "observation"})
     return [obs], None
+
+
+def _columns(payload: dict[str, Any]) -> tuple[dict[str, Any], list[Any]]:
+    """A columnar request's columns and env ids, checked (``xpolicylab.columns``): one environment per env id."""
+    if "observations" in payload or "observation" in payload:
+        raise ProtocolError(ErrorCode.INVALID_FRAME, f"an infer payload carries {columns.KEY!r} or observations, "
+                            "not both", {"field": columns.KEY})
+    env_ids = payload.get("env_ids")
+    if not isinstance(env_ids, list) or not env_ids:
+        raise ProtocolError(ErrorCode.INVALID_FRAME, f"a columnar request needs 'env_ids', a non-empty list: its "
+                            "length is the batch's", {"field": "env_ids"})
+    columns.check(payload[columns.KEY], len(env_ids))
+    return payload[columns.KEY], _distinct_ids(env_ids)
 
 
 class PolicyServer:
@@ -203,16 +216,24 @@ class PolicyServer:
                                 f"the model took longer than {self.config.request_timeout_s} s") from None
 
     async def _infer(self, payload: dict[str, Any], ids: ConnectionIds) -> dict[str, Any]:
-        obs_list, env_ids = _observations(payload)
         model = self.model
-        model_ids = None if env_ids is None else ids.to_model(env_ids)
+        if columns.KEY in payload:
+            batch, env_ids = _columns(payload)
+            model_ids = ids.to_model(env_ids)
 
-        def run() -> Any:
-            if model_ids is None:
-                model.update_obs(obs_list[0])
-                return model.get_action()
-            model.update_obs_batch(obs_list, model_ids)
-            return model.get_action_batch(model_ids)
+            def run() -> Any:
+                model.update_obs_columns(batch, model_ids)
+                return model.get_action_batch(model_ids)
+        else:
+            obs_list, env_ids = _observations(payload)
+            model_ids = None if env_ids is None else ids.to_model(env_ids)
+
+            def run() -> Any:
+                if model_ids is None:
+                    model.update_obs(obs_list[0])
+                    return model.get_action()
+                model.update_obs_batch(obs_list, model_ids)
+                return model.get_action_batch(model_ids)
 
         start = time.perf_counter()
         try:
@@ -236,7 +257,8 @@ class PolicyServer:
     def hello_payload(self) -> dict[str, Any]:
         """What ``hello_ack`` says about this server and its policy (``shared_memory`` only when on, so that a
         server with it off answers exactly as before it existed)."""
-        capabilities: dict[str, Any] = {"batch_infer": True, "native_batch": self._metadata.batch,
+        capabilities: dict[str, Any] = {"batch_infer": True, "columnar_batch": True,
+                                        "native_batch": self._metadata.batch,
                                         "max_frame_bytes": int(self.config.max_frame_mb * (1 << 20))}
         if self.config.shared_memory:
             capabilities["shared_memory"] = True

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from xpolicylab import codec
+from xpolicylab import codec, columns
 from xpolicylab.errors import ErrorCode, ProtocolError
 
 #: Values of the client's ``shared_memory`` option.
@@ -98,8 +98,10 @@ def is_loopback_address(peer: Any) -> bool:
 
 
 def travels_shared(value: Any) -> bool:
-    """Whether ``value`` goes through shared memory rather than the socket (a large array of a wire dtype)."""
-    return isinstance(value, np.ndarray) and value.nbytes >= THRESHOLD and value.dtype.kind in codec.SAFE_KINDS
+    """Whether ``value`` goes through shared memory rather than the socket (a large array of a wire dtype, or a
+    column of such arrays, ``columns.Rows``)."""
+    return (isinstance(value, (np.ndarray, columns.Rows)) and value.nbytes >= THRESHOLD
+            and value.dtype.kind in codec.SAFE_KINDS)
 
 
 def _aligned(n: int) -> int:
@@ -124,20 +126,38 @@ _copier: tuple[int, ThreadPoolExecutor] | None = None
 
 
 def _copy(job: _Copy) -> None:
-    """Copy one array into or out of a segment (an array copied out becomes read-only, like a decoded one). The view
-    of the segment lives only during the copy: a segment cannot be closed while a view of it exists."""
+    """Copy one array into or out of a segment. The view of the segment lives only during the copy: a segment
+    cannot be closed while a view of it exists."""
     buf, offset, array, into = job
     view = np.ndarray(array.shape, array.dtype, buf, offset)
     if into:
         np.copyto(view, array)
     else:
         np.copyto(array, view)
-        array.flags.writeable = False
 
 
 def _copy_group(jobs: Sequence[_Copy]) -> None:
     for job in jobs:
         _copy(job)
+
+
+def _pieces(jobs: list[_Copy], threads: int) -> list[list[_Copy]]:
+    """``jobs`` dealt to ``threads`` groups of about equal bytes: an array larger than a group's share is cut
+    along its first axis (a columnar batch is a few arrays of hundreds of MB, the list form thousands of small
+    ones)."""
+    share = -(-sum(job[2].nbytes for job in jobs) // threads)
+    groups: list[list[_Copy]] = [[] for _ in range(threads)]
+    loads = [0] * threads
+    for buf, offset, array, into in jobs:
+        rows = array.shape[0] if array.ndim and array.flags.c_contiguous else 1
+        row_bytes = array.nbytes // rows if rows else 0
+        step = max(1, share // row_bytes) if row_bytes and array.nbytes > share else rows
+        for start in range(0, rows, step):
+            piece = array if step >= rows else array[start:start + step]
+            target = loads.index(min(loads))
+            groups[target].append((buf, offset + start * row_bytes, piece, into))
+            loads[target] += piece.nbytes
+    return [g for g in groups if g]
 
 
 def _copy_all(jobs: list[_Copy]) -> None:
@@ -150,7 +170,7 @@ def _copy_all(jobs: list[_Copy]) -> None:
         return
     if _copier is None or _copier[0] != os.getpid():
         _copier = os.getpid(), ThreadPoolExecutor(COPY_THREADS, thread_name_prefix="xpolicylab-shm")
-    futures = [_copier[1].submit(_copy_group, jobs[i::threads]) for i in range(threads)]
+    futures = [_copier[1].submit(_copy_group, group) for group in _pieces(jobs, threads)]
     wait(futures)  # all of them, even when one fails: no copy may outlive the request
     for future in futures:
         future.result()
@@ -158,12 +178,18 @@ def _copy_all(jobs: list[_Copy]) -> None:
 
 def _place(value: Any, segment: SharedMemory, cursor: list[int], jobs: list[_Copy]) -> Any:
     """``value`` with each shared array replaced by its reference, and its copy into ``segment`` (from ``cursor[0]``
-    on) added to ``jobs``; containers are rebuilt, the caller's are left as they were."""
+    on) added to ``jobs``; containers are rebuilt, the caller's are left as they were. A column of arrays
+    (``columns.Rows``) is laid out as one array, each run of rows copied in one piece."""
     if travels_shared(value):
         offset = cursor[0]
         cursor[0] += _aligned(value.nbytes)
-        jobs.append((segment.buf, offset, value, True))
+        if isinstance(value, columns.Rows):
+            jobs.extend((segment.buf, offset + start * value.row_nbytes, run, True) for start, run in value.runs())
+        else:
+            jobs.append((segment.buf, offset, value, True))
         return codec.SharedArray(segment.name, offset, value.dtype, value.shape)
+    if isinstance(value, columns.Rows):
+        return value.joined()  # too small to be worth a reference
     if isinstance(value, dict):
         return {k: _place(v, segment, cursor, jobs) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -223,7 +249,7 @@ class SegmentPool:
         anything is written when no segment can be had."""
         need = _shared_bytes(payload)
         if not need:
-            yield payload
+            yield columns.joined(payload) if columns.KEY in payload else payload  # small columns: in the frame
             return
         segment = self._acquire(need)
         try:
@@ -284,6 +310,8 @@ class SegmentCache:
         try:
             self._collect(payload, jobs)
             _copy_all(jobs)
+            for job in jobs:
+                job[2].flags.writeable = False  # like a decoded array
         finally:  # only now: a request's own segments stay open until copied
             while len(self._open) > OPEN_PER_CONNECTION:
                 self._open.popitem(last=False)[1].close()

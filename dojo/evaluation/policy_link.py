@@ -76,8 +76,9 @@ class RemotePolicy:
         self.client = PolicyClient(url, protocol, token=token, **client_args)
         self.metadata = self.client.connect()
         # Whether images skip the socket decides a camera run's speed on one host: say which way they go.
-        log.info("policy link: %s (%s), arrays %s", url, protocol, "through shared memory"
-                 if self.client.uses_shared_memory else "through the socket")
+        log.info("policy link: %s (%s), arrays %s%s", url, protocol, "through shared memory"
+                 if self.client.uses_shared_memory else "through the socket",
+                 ", batches as columns" if self.client.sends_columns else "")
 
     def reset(self, env_ids: Sequence[int]) -> None:
         self.client.reset(env_ids=list(env_ids))
@@ -163,6 +164,16 @@ def _why_on_the_host(meta: PolicyMetadata, rule: ChunkRule | None, backend: str,
     return None
 
 
+def columnar_setting(value: Any) -> bool:
+    """`policy.columnar` as a bool (true/false, or on/off as a command line may write it)."""
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text not in ("true", "false", "on", "off"):
+        raise ValueError(f"policy.columnar must be true or false, got {value!r}")
+    return text in ("true", "on")
+
+
 def policy_identity(cfg: dict[str, Any]) -> dict[str, Any]:
     """A policy config as a run's identity holds it: without its `LINK_SETTINGS`, so that a run resumes whichever
     way it reaches its policy, and no secret is stored."""
@@ -173,10 +184,10 @@ def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
     """The policy a run's config names: `url` set -> a server; otherwise a built-in or importable Model."""
     if cfg.get("url"):
         return RemotePolicy(str(cfg["url"]), str(cfg.get("protocol", "xpolicylab")), cfg.get("token"),
-                            shared_memory=cfg.get("shared_memory", "auto"))
+                            shared_memory=cfg.get("shared_memory", "auto"), columnar=columnar_setting(cfg.get("columnar", True)))
     from xpolicylab.policies import load_policy
 
     options = {k: v for k, v in cfg.items()
-               if k not in ("name", "url", "protocol", "token", "shared_memory", "on_device")}
+               if k not in ("name", "url", "protocol", "token", *LINK_SETTINGS)}
     name = RUNTIME_POLICIES.get(str(cfg["name"]), str(cfg["name"]))
     return InProcessPolicy(load_policy(name, {"embodiment": embodiment, **options}))

@@ -25,12 +25,12 @@ ROOT_ENV = "DOJO_OUTPUTS"
 DEFAULT_ROOT = "outputs"
 DEFAULT_KEY = "default"
 RESOLVER = "dojo_run_key"
-LINK_SETTINGS = ("on_device", "shared_memory", "token")
+LINK_SETTINGS = ("columnar", "on_device", "shared_memory", "token")
 """Policy config keys that say how to reach or run the policy, not which policy it is, so neither a run's folder
 nor its id (`policy_link.policy_identity`) holds them: `on_device` (where the policy runs changes no result of a
-rule that `matches_host`; a run whose results it does change says so in its identity itself), `shared_memory` (the
-same images by another way) and `token` (a secret, which must never be written into a path or, in plain text, into
-the results store; a new token reaches the same server)."""
+rule that `matches_host`; a run whose results it does change says so in its identity itself), `shared_memory` and
+`columnar` (the same images by another way, or laid out otherwise) and `token` (a secret, which must never be
+written into a path or, in plain text, into the results store; a new token reaches the same server)."""
 # Config groups already named by the folders above the key, settings that do not change the results, and where and
 # how a policy is served or run (a server's address is not what is evaluated, and the `LINK_SETTINGS`; the run id
 # inside the store still tells runs of different servers apart).

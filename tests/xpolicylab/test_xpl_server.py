@@ -117,7 +117,8 @@ def test_batched_infer_is_one_model_call():
 
 def test_batch_over_the_frame_limit_travels_as_several_requests_in_order():
     model = Recorder()
-    with serving(model, max_frame_mb=0.1) as srv, PolicyClient(srv.url) as client:  # about 3 observations a frame
+    # About 3 observations a frame (through shared memory, a column of their images would be one reference).
+    with serving(model, max_frame_mb=0.1) as srv, PolicyClient(srv.url, shared_memory="off") as client:
         obs_list = [small_obs(seed=i) for i in range(8)]
         assert observation_bytes(obs_list[0]) * 8 > srv.server.config.max_frame_mb * (1 << 20)
         actions = client.infer_batch(obs_list, [f"env{i}" for i in range(8)])
