@@ -16,7 +16,8 @@ same maps (``split``), so a server that does not care about columns hands its mo
 the list form would have carried.
 
 On the client, a column of arrays stays a ``Rows`` until it goes on the wire: rows a batched simulator rendered
-into one buffer are consecutive in memory and travel as that buffer without a copy (``Rows.runs``).
+into one buffer lie at a constant distance from one another there, and are copied from that buffer as one array
+(``Rows.runs``), into shared memory or into the frame.
 """
 
 from __future__ import annotations
@@ -57,30 +58,32 @@ class Rows:
         return self.row_nbytes * len(self.arrays)
 
     def runs(self) -> Iterator[tuple[int, np.ndarray]]:
-        """``(first row, array of consecutive rows)`` covering every row in order: rows that lie one after another
-        in one buffer (views of it, C-contiguous) are one array over that memory, without a copy; any other row
-        is its own run."""
+        """``(first row, array of those rows)`` covering every row in order, each run one array over memory that
+        is already there: rows that are views of one buffer (C-contiguous each) at a constant distance from one
+        another (one after another, or one camera's images of a ``[B, cameras, H, W, 3]`` batch) are one run,
+        without a copy; any other row is its own run."""
+        rows = self.arrays
         start = 0
-        while start < len(self.arrays):
-            stop = start + 1
-            first = self.arrays[start]
-            if first.flags.c_contiguous and first.base is not None and first.nbytes:
-                address, size = first.ctypes.data, first.nbytes
-                while (stop < len(self.arrays) and self.arrays[stop].base is first.base
-                       and self.arrays[stop].flags.c_contiguous
-                       and self.arrays[stop].ctypes.data == address + (stop - start) * size):
-                    stop += 1
+        while start < len(rows):
+            first, stop = rows[start], start + 1
+            if first.flags.c_contiguous and first.base is not None and first.nbytes and stop < len(rows):
+                address, stride = first.ctypes.data, rows[stop].ctypes.data - first.ctypes.data
+                if stride >= first.nbytes:  # rows that do not overlap, in order
+                    while (stop < len(rows) and rows[stop].base is first.base and rows[stop].flags.c_contiguous
+                           and rows[stop].ctypes.data == address + (stop - start) * stride):
+                        stop += 1
             if stop - start == 1:
                 yield start, first[None]
-            else:  # every row is a view of one buffer, the next row's bytes right after this one's
+            else:  # every row is a view of one buffer, each `stride` bytes after the one before
                 yield start, np.lib.stride_tricks.as_strided(first, (stop - start, *first.shape),
-                                                             (size, *first.strides), writeable=False)
+                                                             (stride, *first.strides), writeable=False)
             start = stop
 
     def joined(self) -> np.ndarray:
-        """The column as one array ``[B, ...]``: the rows' own buffer when they are one run, else a stacked copy."""
+        """The column as one C-contiguous array ``[B, ...]``: the rows' own buffer when they are one run after
+        another there, else a copy."""
         runs = [run for _, run in self.runs()]
-        return runs[0] if len(runs) == 1 else np.concatenate(runs)
+        return np.ascontiguousarray(runs[0]) if len(runs) == 1 else np.concatenate(runs)
 
     def take(self, start: int, stop: int) -> Rows:
         return Rows(self.arrays[start:stop])

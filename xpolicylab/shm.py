@@ -149,7 +149,7 @@ def _pieces(jobs: list[_Copy], threads: int) -> list[list[_Copy]]:
     groups: list[list[_Copy]] = [[] for _ in range(threads)]
     loads = [0] * threads
     for buf, offset, array, into in jobs:
-        rows = array.shape[0] if array.ndim and array.flags.c_contiguous else 1
+        rows = array.shape[0] if array.ndim else 1  # the segment holds it C-contiguous, whatever its own strides
         row_bytes = array.nbytes // rows if rows else 0
         step = max(1, share // row_bytes) if row_bytes and array.nbytes > share else rows
         for start in range(0, rows, step):

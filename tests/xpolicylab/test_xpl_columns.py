@@ -85,6 +85,18 @@ def test_rows_of_one_buffer_travel_as_that_buffer():
     assert np.array_equal(columns.Rows([buffer[0]] * 3).joined(), np.stack([buffer[0]] * 3))  # one row, 3 times
 
 
+def test_one_camera_of_a_batch_with_a_camera_axis_is_one_strided_run():
+    """A batched renderer's ``[B, cameras, H, W, 3]``: one camera's rows are a camera's size apart."""
+    batch = np.random.default_rng(0).integers(0, 256, (5, 3, 4, 6, 3), dtype=np.uint8)
+    rows = columns.Rows([batch[i, 1] for i in range(5)])
+    (start, run), = rows.runs()
+    assert start == 0 and np.shares_memory(run, batch) and np.array_equal(run, batch[:, 1])
+    joined = rows.joined()
+    assert joined.flags.c_contiguous and np.array_equal(joined, batch[:, 1])
+    backwards = columns.Rows([batch[i, 1] for i in (4, 3, 2)])  # later rows first: no run
+    assert len(list(backwards.runs())) == 3 and np.array_equal(backwards.joined(), batch[[4, 3, 2], 1])
+
+
 @pytest.mark.parametrize(("bad", "field", "words"), [
     ({"state": {"joint_pos": np.zeros((3, 14), np.float32)}}, "columns.state.joint_pos", "first axis"),
     ({"instruction": ["a", "b"]}, "columns.instruction", "holds 2 values for 4"),
@@ -191,6 +203,9 @@ def test_rows_placed_in_shared_memory_arrive_whole(monkeypatch):
     monkeypatch.setattr(shm, "COPY_THREADS", 3)
     monkeypatch.setattr(shm, "BYTES_PER_COPY_THREAD", shm.THRESHOLD)
     obs_list = stacked_batch(9, width=192, height=128)
+    rendered = np.random.default_rng(1).integers(0, 256, (9, 2, 128, 192, 3), dtype=np.uint8)
+    for i, obs in enumerate(obs_list):  # one camera from a batch with a camera axis: a strided run
+        obs["images"]["head"] = rendered[i, 1]
     for i in (3, 7):  # rows from elsewhere between runs
         obs_list[i]["images"] = {k: v.copy() + i for k, v in obs_list[i]["images"].items()}
     payload = {columns.KEY: columns.gather(obs_list), "env_ids": list(range(9))}
