@@ -250,14 +250,16 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             progress.interactions(len(ids))
             now = time.monotonic()
             ended = []
+            # Python values once per step, not a NumPy scalar per slot; the maps are the result's own (a row copies
+            # them), read before the backend is called again.
+            scores, steps, done = result.score.tolist(), result.steps.tolist(), result.done.tolist()
             for k, i in enumerate(ids):
                 slot = slots[i]
-                slot.score, slot.steps, slot.stage_times = float(result.score[k]), int(result.steps[k]), \
-                    dict(result.stage_times[k])
-                slot.terms = dict(result.terms[k]) if result.terms else {}
-                slot.counters = dict(result.counters[k]) if result.counters else {}
+                slot.score, slot.steps, slot.stage_times = scores[k], steps[k], result.stage_times[k]
+                slot.terms = result.terms[k] if result.terms else {}
+                slot.counters = result.counters[k] if result.counters else {}
                 timed_out = episode_timeout_s is not None and now - slot.started > episode_timeout_s
-                if result.done[k] or timed_out:
+                if done[k] or timed_out:
                     success = bool(result.success[k])
                     ended.append((i, success, None if success else (result.end_reason[k] or TIMEOUT)))
             if ended:

@@ -55,6 +55,7 @@ from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import init_memory, program_step
 from dojo.backends.predicate_state import gather_state
 from dojo.backends.predicates import pool_contact_matrix
+from dojo.backends.program_types import ProgramLayout
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
 from dojo.backends.mjx.bucket import Bucket, make_buckets
@@ -77,6 +78,8 @@ INPUT_WIDTH = 2 * A.EE_PER_ARM
 """Action rows are padded to the widest mode's width, so one compiled tick takes every mode."""
 RESULT_OUTPUTS = ("success", "score", "stage_step", "terms", "clipped", "nonfinite")
 """The tick's outputs a step with a rule in the tick fetches: a result row's, without the proprioception."""
+ROBOT_STATE = ("joint_pos", "joint_vel", "ee_pose", "gripper")
+"""The tick's outputs an observation's `state` holds (float32, one row per environment)."""
 
 
 class _DeviceHooks(Hooks):
@@ -294,6 +297,7 @@ class _Slot:
     stage_times: dict[str, int | None] = field(default_factory=dict)
     terms: dict[str, bool] = field(default_factory=dict)
     clipped_total: int = 0
+    outputs_read: tuple[list[int], list[bool]] | None = None  # the stage and term row `stage_times`, `terms` show
 
 
 class MjxBackend(Backend):
@@ -346,6 +350,7 @@ class MjxBackend(Backend):
         self._engine: Engine | None = None
         self._buckets: list[Bucket] = []
         self._member: dict[str, tuple[int, int]] = {}
+        self._stage_layouts: dict[str, ProgramLayout] = {}  # plan hash -> its program's stage and term names
         self._rows: list[list[int | None]] = []  # per bucket: row -> slot
         self._members: list[np.ndarray] = []
         self._joints_per_arm = 0
@@ -385,6 +390,7 @@ class MjxBackend(Backend):
                  len(self._known), len(self._buckets), max(b.model.nv for b in self._buckets),
                  time.perf_counter() - start)
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
+        self._stage_layouts = {}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
         self._rows = [[] for _ in self._buckets]
@@ -513,24 +519,42 @@ class MjxBackend(Backend):
 
     def _advance(self, slots: Sequence[_Slot], bad: np.ndarray, outputs: list[dict[str, np.ndarray]]) -> np.ndarray:
         """Each slot's episode after a tick, from its row of `outputs`; a slot whose action had a NaN or an
-        infinity (`bad`) ends there, its score and steps as before. Returns the elements clipped per slot."""
+        infinity (`bad`) ends there, its score and steps as before. Returns the elements clipped per slot.
+
+        Thousands of slots a tick: each bucket's outputs become Python lists once (`tolist`, in C) rather than a
+        NumPy scalar per slot and field, and a slot's stage and term maps are rebuilt only when its row of them
+        changed; per slot and field, that had cost about as much host time as the GPU's physics."""
         clipped = np.zeros(len(slots), np.int32)
+        rows: dict[int, dict[str, list[Any]]] = {}
         for k, slot in enumerate(slots):
             if bad[k]:
                 slot.done, slot.end_reason, slot.success = True, END_NONFINITE, False
                 continue
-            out = {name: v[slot.row] for name, v in outputs[slot.bucket].items()}
+            if slot.bucket not in rows:
+                rows[slot.bucket] = {name: outputs[slot.bucket][name].tolist()
+                                     for name in ("clipped", "success", "score", "stage_step", "terms")}
+            out, r = rows[slot.bucket], slot.row
             slot.step += 1
-            clipped[k] = int(out["clipped"])
-            slot.clipped_total += clipped[k]
-            slot.success, slot.score = bool(out["success"]), float(out["score"])
-            layout = self._engine.hooks.programs[self._buckets[slot.bucket].key].layout_of(
-                self._member[slot.plan.hash][1])
-            slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(layout.stage_names, out["stage_step"])}
-            slot.terms = dict(zip(layout.term_names, map(bool, out["terms"])))
+            clipped[k] = out["clipped"][r]
+            slot.clipped_total += int(out["clipped"][r])
+            slot.success, slot.score = bool(out["success"][r]), float(out["score"][r])
+            read = (out["stage_step"][r], out["terms"][r])
+            if read != slot.outputs_read:
+                layout = self._stage_layout(slot)
+                slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(layout.stage_names, read[0])}
+                slot.terms = dict(zip(layout.term_names, map(bool, read[1])))
+                slot.outputs_read = read
             slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
             slot.done = slot.end_reason is not None
         return clipped
+
+    def _stage_layout(self, slot: _Slot) -> ProgramLayout:
+        """The stage and term names of a slot's program (looked up once per plan until the next `load`)."""
+        layout = self._stage_layouts.get(slot.plan.hash)
+        if layout is None:
+            program = self._engine.hooks.programs[self._buckets[slot.bucket].key]
+            layout = self._stage_layouts[slot.plan.hash] = program.layout_of(self._member[slot.plan.hash][1])
+        return layout
 
     @staticmethod
     def _result(ids: np.ndarray, slots: Sequence[_Slot], obs: list[Observation], clipped: np.ndarray
@@ -540,16 +564,18 @@ class MjxBackend(Backend):
             success=np.asarray([s.success for s in slots], bool),
             score=np.asarray([s.score for s in slots], np.float32),
             done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
-            stage_times=[dict(s.stage_times) for s in slots], end_reason=[s.end_reason for s in slots],
+            # A slot's maps are replaced when they change, never changed in place (`_advance`): handed out as they are.
+            stage_times=[s.stage_times for s in slots], end_reason=[s.end_reason for s in slots],
             clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32),
-            terms=[dict(s.terms) for s in slots])
+            terms=[s.terms for s in slots])
 
     def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
                       observe: Sequence[int] | None = None) -> list[Observation]:
         """Observations of slots `ids`; images (when the backend has cameras) only for those in `observe` (all
         when None), rendered per bucket in one call."""
         slots = [self._slots[i] for i in ids]
-        obs = [self._observation(s, outputs) for s in slots]
+        robot = [{k: np.asarray(out[k], np.float32) for k in ROBOT_STATE} for out in outputs]  # once per bucket
+        obs = [envelope(s.plan, s.step, {k: v[s.row] for k, v in robot[s.bucket].items()}) for s in slots]
         fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
 
         def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -582,12 +608,6 @@ class MjxBackend(Backend):
                 o["privileged"] = {"qpos": layout.qpos(qpos[slot.row]), "qvel": layout.qvel(qvel[slot.row]),
                                    "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
         return obs
-
-    def _observation(self, slot: _Slot, outputs: list[dict[str, np.ndarray]]) -> Observation:
-        out = outputs[slot.bucket]
-        plan = slot.plan
-        return envelope(plan, slot.step, {k: np.asarray(out[k][slot.row], np.float32)
-                                          for k in ("joint_pos", "joint_vel", "ee_pose", "gripper")})
 
     def close(self) -> None:
         for renderer in self._renderers:
