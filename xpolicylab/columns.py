@@ -80,8 +80,8 @@ class Rows:
             start = stop
 
     def joined(self) -> np.ndarray:
-        """The column as one C-contiguous array ``[B, ...]``: the rows' own buffer when they are one run after
-        another there, else a copy."""
+        """The column as one C-contiguous array ``[B, ...]``: the rows' own buffer when they lie one after another
+        in it, else a copy."""
         runs = [run for _, run in self.runs()]
         return np.ascontiguousarray(runs[0]) if len(runs) == 1 else np.concatenate(runs)
 

@@ -99,7 +99,7 @@ class _ReferencePolicy(Model):
                                                                            self.config.get("height")))
         if any(v is not None and v < 1 for v in self.image_size):
             raise ValueError(f"width and height must be positive, got {self.image_size}")
-        self._obs: dict[Hashable, Observation] = {}
+        self._pose: dict[Hashable, np.ndarray] = {}  # per environment, the pose its last observation showed
 
     @property
     def metadata(self) -> PolicyMetadata:
@@ -111,28 +111,41 @@ class _ReferencePolicy(Model):
 
     def current_pose(self, obs: Observation) -> np.ndarray:
         """The pose an action in ``action_mode`` would hold: joint_pos[14], or per arm ee_pose + gripper[16]."""
-        state = obs["state"]
+        return self.current_poses(obs["state"], 1)[0]
+
+    def current_poses(self, state: dict[str, Any], count: int) -> np.ndarray:
+        """``current_pose`` of ``count`` environments at once, from their state stacked (a columnar batch's
+        ``state``), as a new float32 array ``[count, D]``: the reference policies read nothing else, and keep no
+        array they were given."""
         if self.action_mode == "joint":
-            return np.asarray(state["joint_pos"], dtype=np.float32).reshape(-1)
-        ee = np.asarray(state["ee_pose"], dtype=np.float32).reshape(2, 7)
-        grip = np.asarray(state["gripper"], dtype=np.float32).reshape(2, 1)
-        return np.concatenate([ee, grip], axis=1).reshape(-1)
+            return np.array(state["joint_pos"], dtype=np.float32).reshape(count, -1)
+        ee = np.asarray(state["ee_pose"], dtype=np.float32).reshape(count, 2, 7)
+        grip = np.asarray(state["gripper"], dtype=np.float32).reshape(count, 2, 1)
+        return np.concatenate([ee, grip], axis=2).reshape(count, -1)
 
     def reset(self) -> None:
-        self._obs.clear()
+        self._pose.clear()
 
     def reset_batch(self, env_ids: Sequence[Hashable]) -> None:
         for env_id in env_ids:
-            self._obs.pop(env_id, None)
+            self._pose.pop(env_id, None)
 
     def update_obs(self, obs: Observation) -> None:
-        self._obs[None] = obs
+        self._pose[None] = self.current_pose(obs)
 
     def get_action(self) -> np.ndarray:
         return self.get_action_batch([None])[0]
 
     def update_obs_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> None:
-        self._obs.update(zip(env_ids, obs_list, strict=True))
+        self._pose.update(zip(env_ids, (self.current_pose(o) for o in obs_list), strict=True))
+
+    def update_obs_columns(self, columns: dict[str, Any], env_ids: Sequence[Hashable]) -> None:
+        """The batch's poses in one array operation (the images are never looked at)."""
+        self._pose.update(zip(env_ids, self.current_poses(columns["state"], len(env_ids)), strict=True))
+
+    def poses(self, env_ids: Sequence[Hashable]) -> np.ndarray:
+        """The held poses of ``env_ids``, ``[B, D]``."""
+        return np.stack([self._pose[e] for e in env_ids])
 
 
 class ZeroPolicy(_ReferencePolicy):
@@ -145,7 +158,7 @@ class ZeroPolicy(_ReferencePolicy):
         return HoldRule(self.chunk_size) if self.action_mode == "joint" else None
 
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
-        poses = np.stack([self.current_pose(self._obs[e]) for e in env_ids])
+        poses = self.poses(env_ids)
         return np.repeat(poses[:, None, :], self.chunk_size, axis=1)
 
 
@@ -177,7 +190,7 @@ class RandomPolicy(_ReferencePolicy):
         return JitterRule(self.chunk_size, self.seed, self.max_delta, tuple(map(float, lo)), tuple(map(float, hi)))
 
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
-        poses = np.stack([self.current_pose(self._obs[e]) for e in env_ids])
+        poses = self.poses(env_ids)
         b, d, k = poses.shape[0], poses.shape[1], self.chunk_size
         out = np.repeat(poses[:, None, :], k, axis=1)
         if self.action_mode == "joint":  # the noise first, then the grippers: numpy's stream as it always was

@@ -150,7 +150,9 @@ def _pieces(jobs: list[_Copy], threads: int) -> list[list[_Copy]]:
     loads = [0] * threads
     for buf, offset, array, into in jobs:
         rows = array.shape[0] if array.ndim else 1  # the segment holds it C-contiguous, whatever its own strides
-        row_bytes = array.nbytes // rows if rows else 0
+        if not rows:
+            continue  # an empty array: nothing to copy
+        row_bytes = array.nbytes // rows
         step = max(1, share // row_bytes) if row_bytes and array.nbytes > share else rows
         for start in range(0, rows, step):
             piece = array if step >= rows else array[start:start + step]

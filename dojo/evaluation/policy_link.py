@@ -184,7 +184,8 @@ def open_policy(cfg: dict[str, Any], embodiment: str) -> PolicyLink:
     """The policy a run's config names: `url` set -> a server; otherwise a built-in or importable Model."""
     if cfg.get("url"):
         return RemotePolicy(str(cfg["url"]), str(cfg.get("protocol", "xpolicylab")), cfg.get("token"),
-                            shared_memory=cfg.get("shared_memory", "auto"), columnar=columnar_setting(cfg.get("columnar", True)))
+                            shared_memory=cfg.get("shared_memory", "auto"),
+                            columnar=columnar_setting(cfg.get("columnar", True)))
     from xpolicylab.policies import load_policy
 
     options = {k: v for k, v in cfg.items()

@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from dojo.bench.served_bench import steady_rates
 from dojo.evaluation.evaluate import TimeSplit
 
@@ -52,7 +54,24 @@ def test_both_modes_run_the_same_episodes_and_say_which_link_they_used(tmp_path)
     assert report["shared_over_socket"] > 0
 
 
-def test_bad_arguments_exit_2_with_the_usage():
-    done = subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "served", "shared_memory=maybe"],
+def test_both_layouts_run_the_same_episodes_and_say_which_they_used(tmp_path):
+    horizons = tmp_path / "horizons.json"
+    horizons.write_text(json.dumps({"format": "robodojo-horizons/1", "tasks": {"insert_tubes": {"demo_lengths": [8]}}}))
+    done = subprocess.run(
+        [sys.executable, "-m", "dojo.cli.main", "bench", "served", "width=160", "height=160", "shared_memory=on",
+         "layouts=list,columns", "backend=mujoco", "suite=robodojo_sim_mini", "tasks=[insert_tubes]", "episodes=4",
+         "num_envs=2", f"horizons={horizons}", f"plans={tmp_path / 'plans'}"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    runs = report["runs"]
+    assert set(runs) == {"on_list", "on_columns"} and report["same_results"] is True
+    assert "batches as columns" in runs["on_columns"]["link"] and "columns" not in runs["on_list"]["link"]
+    assert runs["on_list"]["layout"] == "list" and report["columns_over_list"] > 0
+
+
+@pytest.mark.parametrize("argument", ["shared_memory=maybe", "layouts=rows"])
+def test_bad_arguments_exit_2_with_the_usage(argument):
+    done = subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "served", argument],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "usage: dojo bench served" in done.stderr

@@ -235,3 +235,20 @@ def test_bench_compares_the_layouts_in_one_run(capsys):
     figures = json.loads(capsys.readouterr().out)
     assert figures["xpolicylab_list"]["columns"] is False and figures["xpolicylab_columns"]["columns"] is True
     assert bench_main(["layouts=[rows]"]) == 2
+
+
+def test_copies_cut_over_threads_cover_every_row_once():
+    """`_pieces` cuts a large array along its first axis so that threads share it; every byte lands once, in its
+    place, whatever the array's strides; an empty array is nothing to copy."""
+    source = np.random.default_rng(2).integers(0, 256, (10, 3, 8, 5), dtype=np.uint8)[:, 1]  # strided rows
+    small = np.arange(7, dtype=np.uint8)
+    segment = bytearray(source.nbytes + 64 + small.nbytes)
+    jobs = [(memoryview(segment), 0, source, True), (memoryview(segment), 0, np.zeros((0, 4), np.uint8), True),
+            (memoryview(segment), source.nbytes + 64, small, True)]
+    groups = shm._pieces(jobs, 3)
+    assert len(groups) == 3 and sum(p[2].nbytes for g in groups for p in g) == source.nbytes + small.nbytes
+    for group in groups:
+        shm._copy_group(group)
+    got = np.frombuffer(segment, np.uint8)
+    assert np.array_equal(got[:source.nbytes].reshape(source.shape), source)
+    assert np.array_equal(got[source.nbytes + 64:], small)

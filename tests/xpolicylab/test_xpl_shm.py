@@ -24,6 +24,7 @@ from xpolicylab.client import PolicyClient, observation_bytes
 from xpolicylab.embodiments import get_embodiment
 from xpolicylab.errors import ErrorCode, ProtocolError
 from xpolicylab.observations import synthetic_observation
+from xpolicylab.model import Model
 from xpolicylab.policies import ZeroPolicy
 from xpolicylab.protocol import Frame, MessageType, decode_frame, encode_frame
 
@@ -58,16 +59,20 @@ class Keeper(ZeroPolicy):
 
     def update_obs(self, obs):
         self.kept.append(obs)
+        self.last = {None: obs}
         super().update_obs(obs)
 
     def update_obs_batch(self, obs_list, env_ids):
         self.kept.extend(obs_list)
         self.batches.append(len(obs_list))
+        self.last = dict(zip(env_ids, obs_list))
         super().update_obs_batch(obs_list, env_ids)
+
+    update_obs_columns = Model.update_obs_columns  # environment by environment, through update_obs_batch
 
     def get_action_batch(self, env_ids):
         actions = super().get_action_batch(env_ids)
-        actions[:, :, 0] = np.array([checksum(self._obs[e]) for e in env_ids])[:, None]
+        actions[:, :, 0] = np.array([checksum(self.last[e]) for e in env_ids])[:, None]
         return actions
 
 
