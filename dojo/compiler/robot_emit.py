@@ -176,8 +176,11 @@ def build_robot_world(robot: dict) -> tuple[mujoco.MjSpec, RobotHandles]:
     world.modelname = robot["id"]
     world.compiler.degree = False
     apply_physics(world, robot)
-    world.worldbody.add_light(name="key", pos=[0.0, -0.6, 2.6], dir=[0.0, 0.25, -1.0], diffuse=[0.8, 0.8, 0.8])
-    world.worldbody.add_light(name="fill", pos=[0.0, 1.5, 2.0], dir=[0.0, -0.6, -1.0], diffuse=[0.3, 0.3, 0.3])
+    # With MuJoCo's headlight (0.1 ambient + 0.4 diffuse) the lights add up to 1 per channel, the bound the task
+    # scenes' lighting presets keep (`asset_sanity.LIGHT_SUM_MAX`): past it MuJoCo's renderer clamps and MuJoCo
+    # Warp's tracer does not, and the two would show this world differently.
+    world.worldbody.add_light(name="key", pos=[0.0, -0.6, 2.6], dir=[0.0, 0.25, -1.0], diffuse=[0.35, 0.35, 0.35])
+    world.worldbody.add_light(name="fill", pos=[0.0, 1.5, 2.0], dir=[0.0, -0.6, -1.0], diffuse=[0.15, 0.15, 0.15])
     world.worldbody.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05], rgba=[0.45, 0.47, 0.5, 1.0]
     )

@@ -347,3 +347,14 @@ def test_mjx_steps_like_mujoco(built):
         dx = step(mx, dx)
         mujoco.mj_step(model, data)
     np.testing.assert_allclose(np.asarray(dx.qpos), data.qpos, atol=1e-4)
+
+
+def test_robot_world_lights_stay_within_what_both_renderers_show_alike(built):
+    """Headlight and lights add up to at most 1 per channel, as the scenes' lighting presets must
+    (`asset_sanity.LIGHT_SUM_MAX`): past it MuJoCo's renderer clamps and MuJoCo Warp's tracer does not."""
+    from dojo.compiler.asset_sanity import LIGHT_SUM_MAX
+
+    model, _ = built
+    total = model.vis.headlight.ambient + model.vis.headlight.diffuse
+    total = total + (model.light_ambient + model.light_diffuse).sum(axis=0)
+    assert model.nlight == 2 and float(total.max()) <= LIGHT_SUM_MAX + 1e-6
