@@ -60,6 +60,12 @@ class Model:
     The server never calls a model from two threads at once.
     """
 
+    borrows_observations: bool = False
+    """True when the model keeps no array of the observations it is given once it has answered (it copies what it
+    keeps, or reads only small fields): a server on the client's host then hands it read-only views of the client's
+    shared memory instead of copies, which at 2,048 environments with three cameras saves copying about 1 GB per
+    request. The client writes the next request's images into the same memory once it has the reply."""
+
     def __init__(self, config: dict[str, Any] | None = None) -> None:
         self.config: dict[str, Any] = dict(config or {})
 

@@ -84,6 +84,7 @@ class _ReferencePolicy(Model):
     asking for them makes the evaluator render and send them, which is what a test of that path needs."""
 
     policy_name = "reference"
+    borrows_observations = True  # what they keep, the poses, are copies
 
     def __init__(self, config: dict[str, Any] | None = None) -> None:
         super().__init__(config)

@@ -15,7 +15,8 @@ Design choices, and why:
   unless another open connection holds them, and forgets a connection's environments when it closes.
 * Shared memory (``capabilities.shared_memory``, the ``shared_memory`` option): a client on this host may send
   large arrays as references to its own segments; each connection opens a segment once, and only a loopback
-  peer's references are read (``xpolicylab.shm``). The arrays are copied out before the model sees them.
+  peer's references are read (``xpolicylab.shm``). The arrays are copied out before the model sees them, unless it
+  keeps none of them (``Model.borrows_observations``): then it reads them where the client wrote them.
 * The optional token is checked during the HTTP upgrade (``Authorization: Bearer <t>`` or openpi's
   ``Api-Key <t>``) with a constant-time comparison; ``/healthz`` answers without one.
 """
@@ -340,7 +341,8 @@ class PolicyServer:
     async def _respond(self, ws: ServerConnection, frame: Frame, segments: shm.SegmentCache,
                        ids: ConnectionIds) -> None:
         try:
-            segments.resolve(frame.payload)  # copies: the model keeps nothing of the client's segments
+            # Copies, so that the model keeps nothing of the client's segments, unless it keeps nothing anyway.
+            segments.resolve(frame.payload, borrow=self.model.borrows_observations)
             reply = await self._dispatch(frame, ids)
         except ProtocolError as exc:
             reply = frame.error(exc)

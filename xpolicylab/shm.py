@@ -4,9 +4,10 @@ On loopback the socket is the bottleneck: every image byte is framed, copied thr
 parsed. A client on the server's host instead writes each large array (``THRESHOLD`` bytes or more) of an
 ``infer`` request into a segment of its own (``SegmentPool``) and sends a small reference in its place
 (``codec.SharedArray``); the server copies the array out of the segment (``SegmentCache``) before the model sees
-it, so the model owns what it keeps and the client may reuse the segment as soon as the reply arrives. Both copies
-of a large request are spread over a few threads (``COPY_THREADS``): one core of the H200 host copies 5.6 GB/s,
-eight 21 GB/s.
+it, so the model owns what it keeps and the client may reuse the segment as soon as the reply arrives. A model that
+keeps no array it is given (``Model.borrows_observations``) is handed read-only views of the segment instead.
+Both copies of a large request are spread over a few threads (``COPY_THREADS``): one core of the H200 host copies
+5.6 GB/s, eight 21 GB/s.
 
 Negotiation: a native server advertises ``capabilities.shared_memory`` (its ``shared_memory`` option) and accepts
 references only from a loopback peer; the client (``shared_memory`` = ``auto`` | ``on`` | ``off``) uses them when
@@ -23,6 +24,7 @@ its own tracker would unlink the client's segments when the server exits.
 from __future__ import annotations
 
 import ipaddress
+import logging
 import mmap
 import os
 import re
@@ -59,6 +61,7 @@ OPEN_PER_CONNECTION = 16
 COPY_THREADS = max(1, min(8, (os.cpu_count() or 1) // 2))
 BYTES_PER_COPY_THREAD = 8 << 20
 
+logger = logging.getLogger(__name__)
 _NAME = re.compile(rf"{PREFIX}[A-Za-z0-9_]{{1,60}}\Z")
 #: Names of the segments this process created: a server in the same process (tests, notebooks) must leave their
 #: resource-tracker registration alone, since it is the creator's.
@@ -305,38 +308,53 @@ class SegmentCache:
         self.refusal = refusal
         self._open: OrderedDict[str, SharedMemory] = OrderedDict()
 
-    def resolve(self, payload: dict[str, Any]) -> None:
+    def resolve(self, payload: dict[str, Any], borrow: bool = False) -> None:
         """Replace, in place, every reference in a decoded payload by a copy of its array that the server owns:
-        every reference is checked before anything is copied."""
+        every reference is checked before anything is copied. ``borrow``: by a read-only view of the client's
+        segment instead, without a copy, for a model that keeps none of the arrays it is given
+        (``Model.borrows_observations``): the client writes that segment again once the reply has reached it."""
         jobs: list[_Copy] = []
         try:
-            self._collect(payload, jobs)
+            self._collect(payload, jobs, borrow)
             _copy_all(jobs)
             for job in jobs:
                 job[2].flags.writeable = False  # like a decoded array
         finally:  # only now: a request's own segments stay open until copied
-            while len(self._open) > OPEN_PER_CONNECTION:
-                self._open.popitem(last=False)[1].close()
+            self._close_oldest()
 
-    def _collect(self, value: Any, jobs: list[_Copy]) -> None:
+    def _collect(self, value: Any, jobs: list[_Copy], borrow: bool) -> None:
         items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
         for key, item in items:
             if isinstance(item, codec.SharedArray):
-                value[key] = self._target(item, jobs)
+                value[key] = self._target(item, jobs, borrow)
             else:
-                self._collect(item, jobs)
+                self._collect(item, jobs, borrow)
 
-    def _target(self, ref: codec.SharedArray, jobs: list[_Copy]) -> np.ndarray:
-        """The array a checked reference will be copied into (added to ``jobs``)."""
+    def _target(self, ref: codec.SharedArray, jobs: list[_Copy], borrow: bool) -> np.ndarray:
+        """The array a checked reference will be copied into (added to ``jobs``), or with ``borrow`` its view."""
         if self.refusal is not None:
             raise _invalid(self.refusal, ref)
         segment = self._segment(ref)
         if ref.offset + ref.nbytes > segment.size:
             raise _invalid(f"shared-memory reference out of bounds: {ref.nbytes} bytes at offset {ref.offset} of "
                            f"segment {ref.segment!r}, which has {segment.size}", ref)
+        if borrow:
+            # Through a slice of the segment's memoryview, which the array holds as an export: the segment cannot be
+            # closed under it (an array made on the memoryview directly holds none, and would read unmapped memory).
+            lent = segment.buf[ref.offset:ref.offset + ref.nbytes]
+            view = np.frombuffer(lent, ref.dtype).reshape(ref.shape)
+            view.flags.writeable = False
+            return view
         out = codec.recycled_buffer(ref.nbytes).view(ref.dtype).reshape(ref.shape)
         jobs.append((segment.buf, ref.offset, out, False))
         return out
+
+    def _close_oldest(self) -> None:
+        """Close the oldest segments beyond ``OPEN_PER_CONNECTION``; one whose arrays are still lent out (a request
+        of this connection is in the model) stays open until a later call."""
+        for name in list(self._open)[:max(0, len(self._open) - OPEN_PER_CONNECTION)]:
+            if _closed(self._open[name]):
+                del self._open[name]
 
     def _segment(self, ref: codec.SharedArray) -> SharedMemory:
         name = ref.segment
@@ -360,6 +378,28 @@ class SegmentCache:
         return segment
 
     def close(self) -> None:
-        """Close (never unlink) every segment this connection opened."""
+        """Close (never unlink) every segment this connection opened. A segment whose arrays a model kept although
+        it borrows them (``Model.borrows_observations``) cannot be closed yet: it stays mapped, with a warning,
+        until they are let go of (tried again at every later ``close``)."""
         while self._open:
-            self._open.popitem()[1].close()
+            name, segment = self._open.popitem()
+            if not _closed(segment):
+                logger.warning("a model kept arrays it borrowed from shared-memory segment %s (it says it borrows "
+                               "observations, so it must copy what it keeps): the segment stays mapped until they "
+                               "are let go of, and its client may have written other images into it", name)
+                _LENT.append(segment)
+        _LENT[:] = [s for s in _LENT if not _closed(s)]
+
+
+#: Segments whose close waits for arrays a model kept after borrowing them (see ``SegmentCache.close``); held here
+#: so that their finalizer, which would fail the same way, does not run meanwhile.
+_LENT: list[SharedMemory] = []
+
+
+def _closed(segment: SharedMemory) -> bool:
+    """Close ``segment``; False (and still open) while arrays lent out of it are alive."""
+    try:
+        segment.close()
+    except BufferError:
+        return False
+    return True

@@ -52,6 +52,8 @@ class Keeper(ZeroPolicy):
     """Keeps every observation it is given (as a policy with a history would); its first action column is the
     checksum of the environment's images, so a reply says which images reached the model."""
 
+    borrows_observations = False  # it keeps them
+
     def __init__(self) -> None:
         super().__init__({"chunk_size": 2})
         self.kept: list[dict] = []
@@ -351,3 +353,54 @@ def test_copies_spread_over_threads_give_the_same_arrays(monkeypatch):
     for sent, got in zip(payload["observations"], received["observations"], strict=True):
         for cam, image in sent["images"].items():
             assert np.array_equal(got["images"][cam], image) and not got["images"][cam].flags.writeable
+
+
+class Borrower(ZeroPolicy):
+    """Says it borrows observations, and (against that word, to show what it means) keeps the images it is given."""
+
+    def __init__(self) -> None:
+        super().__init__({"chunk_size": 2})
+        self.images: list[np.ndarray] = []
+
+    def update_obs(self, obs):
+        self.images.append(obs["images"]["head"])
+        super().update_obs(obs)
+
+
+def test_a_borrowing_model_reads_the_client_segment_itself(caplog):
+    """No copy: the image the model is given is a read-only view of the client's segment, which the client
+    writes again for its next request; a model that keeps one anyway gets a warning when the connection closes,
+    and the segment is closed once the model lets go."""
+    model = Borrower()
+    first, second = big_obs(1), big_obs(2)
+    with serving(model) as srv, PolicyClient(srv.url, shared_memory="on") as client:
+        client.infer(first)
+        kept = model.images[0]
+        assert isinstance(kept.base, np.ndarray) and type(kept.base.base) is memoryview  # the segment's memory
+        assert not kept.flags.writeable
+        assert np.array_equal(kept, first["images"]["head"])
+        client.infer(second)
+        assert np.array_equal(kept, second["images"]["head"])  # the client wrote its next images there
+    assert "kept arrays it borrowed" in caplog.text and shm._LENT
+    model.images.clear()
+    del kept
+    shm.SegmentCache().close()  # every later close tries again
+    assert not shm._LENT
+
+
+def test_a_segment_whose_arrays_are_lent_out_stays_open_until_they_are_let_go_of(monkeypatch):
+    monkeypatch.setattr(shm, "OPEN_PER_CONNECTION", 1)
+    first, second = shm._create(4096), shm._create(4096)  # a client's segments, made in this process
+    try:
+        cache = shm.SegmentCache()
+        lent = {"a": codec.SharedArray(first.name, 0, np.dtype(np.uint8), (16,))}
+        cache.resolve(lent, borrow=True)
+        cache.resolve({"b": codec.SharedArray(second.name, 0, np.dtype(np.uint8), (16,))}, borrow=True)
+        assert list(cache._open) == [first.name, second.name]  # over the limit, but an array of it is still lent
+        del lent
+        cache.resolve({}, borrow=True)
+        assert list(cache._open) == [second.name]
+        cache.close()
+    finally:
+        shm._unlink(first)
+        shm._unlink(second)
