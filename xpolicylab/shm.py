@@ -350,11 +350,13 @@ class SegmentCache:
         return out
 
     def _close_oldest(self) -> None:
-        """Close the oldest segments beyond ``OPEN_PER_CONNECTION``; one whose arrays are still lent out (a request
-        of this connection is in the model) stays open until a later call."""
+        """Close the oldest segments beyond ``OPEN_PER_CONNECTION``. One whose arrays are still lent out (a request
+        of this connection is in the model) is closed once they are let go of (``_LENT``); a later reference to it
+        opens it again."""
         for name in list(self._open)[:max(0, len(self._open) - OPEN_PER_CONNECTION)]:
-            if _closed(self._open[name]):
-                del self._open[name]
+            if not _closed(self._open[name]):
+                _LENT.append(self._open[name])
+            del self._open[name]
 
     def _segment(self, ref: codec.SharedArray) -> SharedMemory:
         name = ref.segment
@@ -391,13 +393,14 @@ class SegmentCache:
         _LENT[:] = [s for s in _LENT if not _closed(s)]
 
 
-#: Segments whose close waits for arrays a model kept after borrowing them (see ``SegmentCache.close``); held here
-#: so that their finalizer, which would fail the same way, does not run meanwhile.
+#: Segments whose close waits for arrays lent out of them (``SegmentCache.close``, ``_close_oldest``), no longer
+#: used for new ones; held here so that their finalizer, which would fail the same way, does not run meanwhile.
 _LENT: list[SharedMemory] = []
 
 
 def _closed(segment: SharedMemory) -> bool:
-    """Close ``segment``; False (and still open) while arrays lent out of it are alive."""
+    """Close ``segment``; False while arrays lent out of it are alive (its mapping stays; its ``buf`` may be gone,
+    so it must not lend again), True once closed."""
     try:
         segment.close()
     except BufferError:
