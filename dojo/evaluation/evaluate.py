@@ -47,6 +47,7 @@ from xpolicylab.errors import ErrorCode, ProtocolError
 from dojo.compiler.episodes import PlannedEpisode
 from dojo.compiler.plan import Plan
 
+from dojo.evaluation.chunks import ChunkQueue
 from dojo.evaluation.episode import EpisodeKey, EpisodeResult
 from dojo.evaluation.policy_link import PolicyLink, device_rule_for
 from dojo.evaluation.recorder import SlotRecorder
@@ -62,7 +63,6 @@ class _Slot:
     item: PlannedEpisode
     plan: Plan
     started: float
-    chunk: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     score: float = 0.0  # progress so far, for an episode that ends between steps (a policy error)
     steps: int = 0
     stage_times: dict[str, int | None] = field(default_factory=dict)
@@ -154,6 +154,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     first = [todo.popleft() for _ in range(min(num_envs, len(todo)))]
     slots: dict[int, _Slot] = {i: _Slot(item, plan_of(item), time.monotonic()) for i, item in enumerate(first)}
     recorders = {i: recorder_factory() for i in slots} if recorder_factory else {}
+    chunks = ChunkQueue(len(slots))  # the actions each slot is playing
     ran = 0
     split = TimeSplit()
 
@@ -180,6 +181,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             if more is not None and len(todo) < len(ids):
                 todo.extend(more(len(ids) - len(todo)))
             refill = ids[:len(todo)]
+            chunks.clear(np.asarray(ids, np.int64))
             for i in ids[len(refill):]:
                 del slots[i]
             if refill:
@@ -197,26 +199,25 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     def host_step() -> StepResult | None:
         """One step with the policy asked on the host for the slots whose chunks ran out (None: it failed on
         them, and their episodes ended instead)."""
-        need = [i for i, s in slots.items() if len(s.chunk) == 0]
+        ids = sorted(slots)
+        stepped = np.asarray(ids, np.int64)
+        need = stepped[chunks.exhausted(stepped)].tolist()
         if need:
             try:
                 with split.phase("policy"):
-                    chunks = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], addressed(need))
+                    answer = policy.act([_with_episode(obs[i], slots[i], meta.cameras) for i in need], addressed(need))
             except ProtocolError as err:
                 if err.code != ErrorCode.INFER_FAILED:
                     raise  # the link itself failed: stop, and resume these episodes later
                 finish([(i, False, f"{POLICY_ERROR}: {err}") for i in need], obs)  # the policy failed on them
                 return None
-            for i, chunk in zip(need, chunks):
-                slots[i].chunk = np.asarray(chunk, np.float32).reshape(-1, chunks.shape[-1])
-        ids = sorted(slots)
-        actions = np.stack([slots[i].chunk[0] for i in ids])
-        for k, i in enumerate(ids):
-            slots[i].chunk = slots[i].chunk[1:]
-            if recorders:
+            chunks.fill(np.asarray(need, np.int64), answer)
+        actions = chunks.take(stepped)
+        if recorders:
+            for k, i in enumerate(ids):
                 recorders[i].add(obs[i], actions[k])
         # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
-        observe = ids if recorders else [i for i in ids if len(slots[i].chunk) == 0]
+        observe = ids if recorders else stepped[chunks.exhausted(stepped)].tolist()
         with split.phase("backend steps"):
             result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
         for k, i in enumerate(ids):
