@@ -237,6 +237,16 @@ class ReplayPolicy(_ReferencePolicy):
         for env_id in env_ids:
             self._cursor.pop(env_id, None)
 
+    # It plays its recording back whatever it observes: observations are not read, not even for a pose.
+    def update_obs(self, obs: Observation) -> None:
+        pass
+
+    def update_obs_batch(self, obs_list: Sequence[Observation], env_ids: Sequence[Hashable]) -> None:
+        pass
+
+    def update_obs_columns(self, columns: dict[str, Any], env_ids: Sequence[Hashable]) -> None:
+        pass
+
     def get_action_batch(self, env_ids: Sequence[Hashable]) -> np.ndarray:
         chunks = []
         last = len(self.actions) - 1
