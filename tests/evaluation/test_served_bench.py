@@ -5,9 +5,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from contextlib import contextmanager
 
 import pytest
 
+from dojo.bench import served_bench
 from dojo.bench.served_bench import steady_rates
 from dojo.evaluation.evaluate import TimeSplit
 
@@ -54,20 +56,27 @@ def test_both_modes_run_the_same_episodes_and_say_which_link_they_used(tmp_path)
     assert report["shared_over_socket"] > 0
 
 
-def test_both_layouts_run_the_same_episodes_and_say_which_they_used(tmp_path):
-    horizons = tmp_path / "horizons.json"
-    horizons.write_text(json.dumps({"format": "robodojo-horizons/1", "tasks": {"insert_tubes": {"demo_lengths": [8]}}}))
-    done = subprocess.run(
-        [sys.executable, "-m", "dojo.cli.main", "bench", "served", "width=160", "height=160", "shared_memory=on",
-         "layouts=list,columns", "backend=mujoco", "suite=robodojo_sim_mini", "tasks=[insert_tubes]", "episodes=4",
-         "num_envs=2", f"horizons={horizons}", f"plans={tmp_path / 'plans'}"],
-        capture_output=True, text=True, cwd=tmp_path, timeout=600)
-    assert done.returncode == 0, done.stderr[-2000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
-    runs = report["runs"]
-    assert set(runs) == {"on_list", "on_columns"} and report["same_results"] is True
-    assert "batches as columns" in runs["on_columns"]["link"] and "columns" not in runs["on_list"]["link"]
-    assert runs["on_list"]["layout"] == "list" and report["columns_over_list"] > 0
+def test_layouts_each_get_their_run_and_their_ratio(monkeypatch):
+    """The runs a layout list makes, their keys and `columns_over_list` (each `dojo run` stood in for: the real
+    one with columns is the test above, and `policy.columnar=false` reaching the client is test_policy_link's)."""
+    asked = []
+
+    @contextmanager
+    def server(protocol, options=()):
+        yield "ws://127.0.0.1:1"
+
+    def run(overrides, url, mode, layout, store):
+        asked.append((mode, layout))
+        return {"shared_memory": mode, "layout": layout, "steady_interactions_per_s": 30.0 if layout == "columns"
+                else 20.0, "rows": {"episode": (True, 1.0, 5, None)}}
+
+    monkeypatch.setattr(served_bench, "spawned_server", server)
+    monkeypatch.setattr(served_bench, "served_run", run)
+    report = served_bench.bench_served(["backend=mujoco"], ["on"], ["head"], 32, 24, ["list", "columns"])
+    assert asked == [("on", "list"), ("on", "columns")] and set(report["runs"]) == {"on_list", "on_columns"}
+    assert report["columns_over_list"] == 1.5 and report["same_results"] and "shared_over_socket" not in report
+    report = served_bench.bench_served([], ["off", "on"], ["head"], 32, 24)
+    assert set(report["runs"]) == {"off", "on"} and report["shared_over_socket"] == 1.0
 
 
 @pytest.mark.parametrize("argument", ["shared_memory=maybe", "layouts=rows"])
