@@ -23,7 +23,7 @@ out and no action copied back per step. Host backends do not (their package does
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, Self
 
@@ -141,7 +141,19 @@ def refuse_ended(ids: np.ndarray, slots: Sequence[Any]) -> None:
     `EpisodeDone` naming each such slot and why its episode ended (slots carry `done` and `end_reason`)."""
     ended = {int(i): s.end_reason for i, s in zip(ids, slots) if s.done}
     if ended:
-        raise EpisodeDone(f"episodes ended in slots {ended} (slot: reason); reset them before stepping")
+        raise_ended(ended)
+
+
+SHOWN_ENDED = 8
+"""Slots an `EpisodeDone` lists by number: a batch of thousands that all ended would otherwise be a page of text."""
+
+
+def raise_ended(ended: Mapping[int, str | None]) -> None:
+    """`EpisodeDone` for stepping slots whose episodes ended: {slot: end reason}, the first `SHOWN_ENDED` named."""
+    shown = dict(list(ended.items())[:SHOWN_ENDED])
+    more = f" and {len(ended) - len(shown)} more" if len(ended) > len(shown) else ""
+    raise EpisodeDone(f"episodes ended in {len(ended)} slot(s) {shown}{more} (slot: reason); reset them before "
+                      "stepping")
 
 
 def checked_actions(actions: Any, mode: str, n: int, joints_per_arm: int) -> np.ndarray:

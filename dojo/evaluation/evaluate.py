@@ -29,6 +29,7 @@ policy did not ask for; the policy is shown only its own (`metadata.cameras`).
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import json
 import logging
@@ -63,11 +64,32 @@ class _Slot:
     item: PlannedEpisode
     plan: Plan
     started: float
-    score: float = 0.0  # progress so far, for an episode that ends between steps (a policy error)
-    steps: int = 0
-    stage_times: dict[str, int | None] = field(default_factory=dict)
-    terms: dict[str, bool] = field(default_factory=dict)
-    counters: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class _Latest:
+    """Where each slot's episode stood after the last step, read only when it ends: the step's result and the
+    slots it stepped (sorted, the result's order). Every running slot is stepped every tick, so one result holds
+    them all; a slot refilled since has not stepped (`forget`), and an episode that ends before its first step has
+    made no progress."""
+
+    result: StepResult | None = None
+    ids: list[int] = field(default_factory=list)
+    refilled: set[int] = field(default_factory=set)
+
+    def update(self, result: StepResult, ids: list[int]) -> None:
+        self.result, self.ids, self.refilled = result, ids, set()
+
+    def forget(self, ids: Iterable[int]) -> None:
+        self.refilled.update(ids)
+
+    def progress(self, i: int) -> tuple[float, int, dict[str, int | None], dict[str, bool], dict[str, int]]:
+        """Slot i's score, steps, stage times, success terms and backend counters so far."""
+        k, r = bisect.bisect_left(self.ids, i), self.result
+        if r is None or i in self.refilled or k == len(self.ids) or self.ids[k] != i:
+            return 0.0, 0, {}, {}, {}
+        return (float(r.score[k]), int(r.steps[k]), r.stage_times[k], r.terms[k] if r.terms else {},
+                r.counters[k] if r.counters else {})
 
 
 class RowSink(Protocol):
@@ -155,6 +177,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     slots: dict[int, _Slot] = {i: _Slot(item, plan_of(item), time.monotonic()) for i, item in enumerate(first)}
     recorders = {i: recorder_factory() for i in slots} if recorder_factory else {}
     chunks = ChunkQueue(len(slots))  # the actions each slot is playing
+    latest = _Latest()
     ran = 0
     split = TimeSplit()
 
@@ -171,13 +194,14 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             rows = []
             for i, success, reason in ended:
                 video = recorders[i].finish(last_obs[i], success)[0] if recorders else None
-                rows.append(_row(run_id, slots[i], success, reason, meta.name, policy_meta, now, video,
-                                 backend.name))
+                rows.append(_row(run_id, slots[i], latest.progress(i), success, reason, meta.name, policy_meta,
+                                 now, video, backend.name))
             store.add_many(rows)
             for row in rows:
                 progress.episode_finished(row)
             ran += len(rows)
             ids = [i for i, _, _ in ended]
+            latest.forget(ids)
             if more is not None and len(todo) < len(ids):
                 todo.extend(more(len(ids) - len(todo)))
             refill = ids[:len(todo)]
@@ -220,8 +244,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         observe = ids if recorders else stepped[chunks.exhausted(stepped)].tolist()
         with split.phase("backend steps"):
             result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
-        for k, i in enumerate(ids):
-            obs[i] = result.obs[k]
+        obs.update(zip(ids, result.obs))
         return result
 
     def device_step() -> StepResult:
@@ -249,20 +272,13 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                 continue
             ids = sorted(slots)  # the slots just stepped, in the order of the result
             progress.interactions(len(ids))
-            now = time.monotonic()
-            ended = []
-            # Python values once per step, not a NumPy scalar per slot; the maps are the result's own (a row copies
-            # them), read before the backend is called again.
-            scores, steps, done = result.score.tolist(), result.steps.tolist(), result.done.tolist()
-            for k, i in enumerate(ids):
-                slot = slots[i]
-                slot.score, slot.steps, slot.stage_times = scores[k], steps[k], result.stage_times[k]
-                slot.terms = result.terms[k] if result.terms else {}
-                slot.counters = result.counters[k] if result.counters else {}
-                timed_out = episode_timeout_s is not None and now - slot.started > episode_timeout_s
-                if done[k] or timed_out:
-                    success = bool(result.success[k])
-                    ended.append((i, success, None if success else (result.end_reason[k] or TIMEOUT)))
+            latest.update(result, ids)
+            ending = np.asarray(result.done, bool)
+            if episode_timeout_s is not None:
+                now = time.monotonic()
+                ending = ending | np.asarray([now - slots[i].started > episode_timeout_s for i in ids], bool)
+            ended = [(ids[k], won, None if won else (result.end_reason[k] or TIMEOUT))
+                     for k, won in zip(np.flatnonzero(ending).tolist(), result.success[ending].tolist())]
             if ended:
                 finish(ended, obs)
     finally:
@@ -289,12 +305,14 @@ def _with_episode(obs: dict[str, Any], slot: _Slot, cameras: tuple[str, ...]) ->
     return out
 
 
-def _row(run_id: str, slot: _Slot, success: bool, reason: str | None, policy_name: str,
-         policy_meta: dict[str, Any], now: float, video_path: str | None, backend: str) -> EpisodeResult:
+def _row(run_id: str, slot: _Slot, progress: tuple[float, int, dict[str, int | None], dict[str, bool], dict[str, int]],
+         success: bool, reason: str | None, policy_name: str, policy_meta: dict[str, Any], now: float,
+         video_path: str | None, backend: str) -> EpisodeResult:
     item = slot.item
+    score, steps, stage_times, terms, counters = progress
     return EpisodeResult(
         run_id=run_id, split=item.split, plan_hash=item.plan_hash, task=item.task, dimension=item.dimension,
         setting=item.setting, eval_seed=item.eval_seed, episode=item.episode, scene_seed=item.scene_seed,
-        policy_name=policy_name, policy_meta=policy_meta, success=success, score=slot.score, steps=slot.steps,
-        wall_time_s=now - slot.started, stage_times=slot.stage_times, failure_reason=reason,
-        video_path=video_path, success_terms=slot.terms, counters=slot.counters, backend=backend)
+        policy_name=policy_name, policy_meta=policy_meta, success=success, score=score, steps=steps,
+        wall_time_s=now - slot.started, stage_times=stage_times, failure_reason=reason,
+        video_path=video_path, success_terms=terms, counters=counters, backend=backend)

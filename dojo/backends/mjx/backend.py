@@ -39,7 +39,7 @@ import hashlib
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -49,8 +49,7 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends import actions as A
-from dojo.backends.base import (END_NONFINITE, Backend, ChunkRule, Observation, StepResult, checked_actions,
-                                end_after_step, envelope, refuse_ended, resolve_ids)
+from dojo.backends.base import Backend, ChunkRule, Observation, StepResult, checked_actions, envelope, resolve_ids
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import init_memory, program_step
 from dojo.backends.predicate_state import gather_state
@@ -67,6 +66,7 @@ from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lane
 from dojo.backends.mjx.merge_groups import GROWTH
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
+from dojo.backends.mjx.slots import FREE, SlotTable
 
 log = logging.getLogger(__name__)
 
@@ -284,22 +284,6 @@ def _proprioception(robot: RobotIndex, d: Tree) -> dict[str, jax.Array]:
             "ee_pose": jnp.concatenate([pos, quat], -1), "gripper": grip}
 
 
-@dataclass
-class _Slot:
-    plan: Any
-    bucket: int
-    row: int
-    step: int = 0
-    done: bool = False
-    end_reason: str | None = None
-    success: bool = False
-    score: float = 0.0
-    stage_times: dict[str, int | None] = field(default_factory=dict)
-    terms: dict[str, bool] = field(default_factory=dict)
-    clipped_total: int = 0
-    outputs_read: tuple[list[int], list[bool]] | None = None  # the stage and term row `stage_times`, `terms` show
-
-
 class MjxBackend(Backend):
     """Batched MJX backend (`impl` 'jax', 'warp' or 'auto', see the module docstring); images rendered on the
     device under `warp` (`device_cameras`), on the host under `jax`. Under `warp` every tick checks MuJoCo Warp's
@@ -346,12 +330,11 @@ class MjxBackend(Backend):
             log.warning("mjx backend: on a CPU, XLA compiles a real task's tick for tens of minutes and may fail; "
                         "backend.impl=warp runs MuJoCo Warp's kernels on the CPU instead")
         self._known: dict[str, Any] = {}
-        self._slots: list[_Slot] = []
+        self._slots = SlotTable([], [], [], [])
         self._engine: Engine | None = None
         self._buckets: list[Bucket] = []
         self._member: dict[str, tuple[int, int]] = {}
         self._stage_layouts: dict[str, ProgramLayout] = {}  # plan hash -> its program's stage and term names
-        self._rows: list[list[int | None]] = []  # per bucket: row -> slot
         self._members: list[np.ndarray] = []
         self._joints_per_arm = 0
         self._rule: ChunkRule | None = None
@@ -393,17 +376,18 @@ class MjxBackend(Backend):
         self._stage_layouts = {}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
-        self._rows = [[] for _ in self._buckets]
-        self._slots = []
+        buckets = [self._member[plan.hash][0] for plan in plans]
+        starts = np.bincount(buckets, minlength=len(self._buckets))  # rows each bucket's first slots take
+        rows = [0] * len(plans)
+        taken = [0] * len(self._buckets)
+        for s, k in enumerate(buckets):
+            rows[s], taken[k] = taken[k], taken[k] + 1
+        capacity = [self.placement.padded(max(int(starts[k]), min(len(plans), len(bucket.members))))
+                    for k, bucket in enumerate(self._buckets)]
+        self._slots = SlotTable(plans, buckets, rows, capacity)
+        self._members = [np.zeros(size, np.int32) for size in capacity]
         for s, plan in enumerate(plans):
-            k, _ = self._member[plan.hash]
-            self._slots.append(_Slot(plan, k, len(self._rows[k])))
-            self._rows[k].append(s)
-        for k, bucket in enumerate(self._buckets):
-            capacity = self.placement.padded(max(len(self._rows[k]), min(len(plans), len(bucket.members))))
-            self._rows[k] += [None] * (capacity - len(self._rows[k]))
-        self._members = [np.asarray([0 if s is None else self._member[self._slots[s].plan.hash][1] for s in rows],
-                                    np.int32) for rows in self._rows]
+            self._members[buckets[s]][rows[s]] = self._member[plan.hash][1]
         self._joints_per_arm = len(plans[0].robot["arm_joints"]) // 2
         hooks = _DeviceHooks({b.key: bucket_programs(b) for b in self._buckets},
                              {b.key: RobotIndex.build(b.model, b.members[0].plan.robot) for b in self._buckets},
@@ -416,7 +400,7 @@ class MjxBackend(Backend):
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
         start = time.perf_counter()
-        self._engine = Engine(self._buckets, [len(r) for r in self._rows], self.impl, hooks, example,
+        self._engine = Engine(self._buckets, capacity, self.impl, hooks, example,
                               placement=self.placement, graph_mode=self.graph_mode)
         if self.render_config is not None:
             self._renderers = [BucketCameras(arr, self.render_config) if self.impl == "warp" else
@@ -428,55 +412,44 @@ class MjxBackend(Backend):
         self.reset()
         log.info("mjx backend: first tick done (%.1f s)", time.perf_counter() - start)
 
-    def _row_for(self, slot: _Slot, plan: Any) -> tuple[int, int]:
+    def _row_for(self, s: int, plan: Any) -> tuple[int, int]:
+        """The bucket and row slot `s` plays `plan` in: its own row when the plan is of its bucket, else a free one."""
         if plan.hash not in self._member:
             raise ValueError(f"plan {plan.hash[:12]} ({plan.task}) was not given to preload/load; refilling with "
                              "it would need a new compilation")
         k, _ = self._member[plan.hash]
-        if k == slot.bucket:
-            return k, slot.row
-        free = [r for r, s in enumerate(self._rows[k]) if s is None]
-        if not free:
+        if k == self._slots.bucket[s]:
+            return k, int(self._slots.row[s])
+        free = np.flatnonzero(self._slots.rows[k] == FREE)
+        if not free.size:
             raise ValueError(f"no free row in bucket {self._buckets[k].key} for plan {plan.hash[:12]}: load started "
-                             f"{len(self._rows[k])} slots in it")
-        return k, free[0]
+                             f"{len(self._slots.rows[k])} slots in it")
+        return k, int(free[0])
 
     def reset(self, env_ids: Sequence[int] | None = None, plans: Sequence[Any] | None = None) -> list[Observation]:
         ids = resolve_ids(env_ids, self.num_envs)
-        if plans is not None and len(plans) != ids.size:
-            raise ValueError(f"reset got {len(plans)} plans for {ids.size} env_ids")
-        for j, i in enumerate(ids):
-            slot = self._slots[i]
-            if plans is not None:
-                k, row = self._row_for(slot, plans[j])
-                self._rows[slot.bucket][slot.row] = None
-                slot.plan, slot.bucket, slot.row = plans[j], k, row
-                self._rows[k][row] = int(i)
-                self._members[k][row] = self._member[slot.plan.hash][1]
-            self._slots[i] = _Slot(slot.plan, slot.bucket, slot.row)
-        outputs = self._tick(self._flags([self._slots[i] for i in ids]), self._flags([]), self._idle_inputs())
+        if plans is not None:
+            if len(plans) != ids.size:
+                raise ValueError(f"reset got {len(plans)} plans for {ids.size} env_ids")
+            for s, plan in zip(ids.tolist(), plans):
+                k, row = self._row_for(s, plan)
+                self._slots.move(s, plan, k, row)
+                self._members[k][row] = self._member[plan.hash][1]
+        self._slots.restart(ids)
+        outputs = self._tick(self._slots.flags(ids), self._slots.flags(ids[:0]), self._idle_inputs())
         return self._observations(ids, outputs)
-
-    def _flags(self, slots: Sequence[_Slot]) -> list[np.ndarray]:
-        """Per bucket, a bool per row: True at the rows of `slots`."""
-        flags = [np.zeros(len(r), bool) for r in self._rows]
-        for slot in slots:
-            flags[slot.bucket][slot.row] = True
-        return flags
 
     def _idle_inputs(self) -> list[Tree]:
         """Per bucket, the tick's inputs when the host sends no actions (resets): zero action rows, or nothing at
         all when a rule makes the actions in the tick."""
         if self._rule is not None:
-            return [() for _ in self._rows]
-        return [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._rows]
+            return [() for _ in self._slots.rows]
+        return [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.zeros(len(r), np.int32)) for r in self._slots.rows]
 
     def _tick(self, resets: list[np.ndarray], stepping: list[np.ndarray], inputs: list[Tree],
               names: Sequence[str] | None = None) -> list[dict[str, np.ndarray]]:
         """One engine tick; its outputs copied to the host, only those in `names` when given."""
-        steps = [np.asarray([self._slots[s].step + 1 if s is not None else 0 for s in rows], np.int32)
-                 for rows in self._rows]
-        out = self._engine.tick(self._members, resets, stepping, inputs, steps)
+        out = self._engine.tick(self._members, resets, stepping, inputs, self._slots.next_steps())
         if self.impl == "warp":
             self._engine.check_overflow()
         return jax.device_get(list(out) if names is None else [{n: o[n] for n in names} for o in out])
@@ -490,20 +463,17 @@ class MjxBackend(Backend):
             raise ValueError(f"this mjx backend was built for action modes {list(self.action_modes)}, not '{mode}' "
                              "(its tick compiles only those; give the policy's mode in BackendOptions.action_modes)")
         ids = resolve_ids(env_ids, self.num_envs)
-        slots = [self._slots[i] for i in ids]
-        refuse_ended(ids, slots)
+        self._slots.refuse_ended(ids)
         actions = checked_actions(actions, mode, ids.size, self._joints_per_arm)
-        dim = actions.shape[1]
         bad = A.nonfinite(np, actions)
-        rows_a = [np.zeros((len(r), INPUT_WIDTH), np.float32) for r in self._rows]
-        modes = [np.full(len(r), MODES.index(mode), np.int32) for r in self._rows]
-        for k, slot in enumerate(slots):
-            if not bad[k]:
-                rows_a[slot.bucket][slot.row, :dim] = actions[k]
-        outputs = self._tick(self._flags([]), self._flags([s for s, b in zip(slots, bad) if not b]),
-                             list(zip(rows_a, modes)))
-        clipped = self._advance(slots, bad, outputs)
-        return self._result(ids, slots, self._observations(ids, outputs, observe=observe), clipped)
+        inputs = [(np.zeros((len(r), INPUT_WIDTH), np.float32), np.full(len(r), MODES.index(mode), np.int32))
+                  for r in self._slots.rows]
+        fine = ids[~bad]
+        for k, at in self._slots.by_bucket(fine):
+            inputs[k][0][self._slots.row[fine[at]], :actions.shape[1]] = actions[~bad][at]
+        outputs = self._tick(self._slots.flags(ids[:0]), self._slots.flags(fine), inputs)
+        clipped = self._slots.advance(ids, bad, outputs, self._stage_layout)
+        return self._slots.result(ids, self._observations(ids, outputs, observe=observe), clipped)
 
     def step_with_rule(self, env_ids: Sequence[int] | None = None) -> StepResult:
         """One control step of slots `env_ids` with the attached rule's actions (`attach_rule`), made in the tick
@@ -511,71 +481,36 @@ class MjxBackend(Backend):
         if self._rule is None:
             raise ValueError("no policy rule is attached to this mjx backend: attach_rule before load, or step")
         ids = resolve_ids(env_ids, self.num_envs)
-        slots = [self._slots[i] for i in ids]
-        refuse_ended(ids, slots)
-        outputs = self._tick(self._flags([]), self._flags(slots), self._idle_inputs(), names=RESULT_OUTPUTS)
-        bad = np.asarray([bool(outputs[s.bucket]["nonfinite"][s.row]) for s in slots], bool)
-        return self._result(ids, slots, [], self._advance(slots, bad, outputs))
+        self._slots.refuse_ended(ids)
+        outputs = self._tick(self._slots.flags(ids[:0]), self._slots.flags(ids), self._idle_inputs(),
+                             names=RESULT_OUTPUTS)
+        bad = np.zeros(ids.size, bool)
+        for k, at in self._slots.by_bucket(ids):
+            bad[at] = np.asarray(outputs[k]["nonfinite"])[self._slots.row[ids[at]]]
+        return self._slots.result(ids, [], self._slots.advance(ids, bad, outputs, self._stage_layout))
 
-    def _advance(self, slots: Sequence[_Slot], bad: np.ndarray, outputs: list[dict[str, np.ndarray]]) -> np.ndarray:
-        """Each slot's episode after a tick, from its row of `outputs`; a slot whose action had a NaN or an
-        infinity (`bad`) ends there, its score and steps as before. Returns the elements clipped per slot.
-
-        Thousands of slots a tick: each bucket's outputs become Python lists once (`tolist`, in C) rather than a
-        NumPy scalar per slot and field, and a slot's stage and term maps are rebuilt only when its row of them
-        changed; per slot and field, that had cost about as much host time as the GPU's physics."""
-        clipped = np.zeros(len(slots), np.int32)
-        rows: dict[int, dict[str, list[Any]]] = {}
-        for k, slot in enumerate(slots):
-            if bad[k]:
-                slot.done, slot.end_reason, slot.success = True, END_NONFINITE, False
-                continue
-            if slot.bucket not in rows:
-                rows[slot.bucket] = {name: outputs[slot.bucket][name].tolist()
-                                     for name in ("clipped", "success", "score", "stage_step", "terms")}
-            out, r = rows[slot.bucket], slot.row
-            slot.step += 1
-            clipped[k] = out["clipped"][r]
-            slot.clipped_total += int(out["clipped"][r])
-            slot.success, slot.score = bool(out["success"][r]), float(out["score"][r])
-            read = (out["stage_step"][r], out["terms"][r])
-            if read != slot.outputs_read:
-                layout = self._stage_layout(slot)
-                slot.stage_times = {n: (int(t) if t >= 0 else None) for n, t in zip(layout.stage_names, read[0])}
-                slot.terms = dict(zip(layout.term_names, map(bool, read[1])))
-                slot.outputs_read = read
-            slot.end_reason = end_after_step(slot.success, slot.step, slot.plan.horizon)
-            slot.done = slot.end_reason is not None
-        return clipped
-
-    def _stage_layout(self, slot: _Slot) -> ProgramLayout:
-        """The stage and term names of a slot's program (looked up once per plan until the next `load`)."""
-        layout = self._stage_layouts.get(slot.plan.hash)
+    def _stage_layout(self, s: int) -> ProgramLayout:
+        """The stage and term names of slot `s`'s program (looked up once per plan until the next `load`)."""
+        plan = self._slots.plans[s]
+        layout = self._stage_layouts.get(plan.hash)
         if layout is None:
-            program = self._engine.hooks.programs[self._buckets[slot.bucket].key]
-            layout = self._stage_layouts[slot.plan.hash] = program.layout_of(self._member[slot.plan.hash][1])
+            k, member = self._member[plan.hash]
+            program = self._engine.hooks.programs[self._buckets[k].key]
+            layout = self._stage_layouts[plan.hash] = program.layout_of(member)
         return layout
-
-    @staticmethod
-    def _result(ids: np.ndarray, slots: Sequence[_Slot], obs: list[Observation], clipped: np.ndarray
-                ) -> StepResult:
-        return StepResult(
-            env_ids=ids, obs=obs,
-            success=np.asarray([s.success for s in slots], bool),
-            score=np.asarray([s.score for s in slots], np.float32),
-            done=np.asarray([s.done for s in slots], bool), steps=np.asarray([s.step for s in slots], np.int32),
-            # A slot's maps are replaced when they change, never changed in place (`_advance`): handed out as they are.
-            stage_times=[s.stage_times for s in slots], end_reason=[s.end_reason for s in slots],
-            clipped=clipped, clipped_total=np.asarray([s.clipped_total for s in slots], np.int32),
-            terms=[s.terms for s in slots])
 
     def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
                       observe: Sequence[int] | None = None) -> list[Observation]:
         """Observations of slots `ids`; images (when the backend has cameras) only for those in `observe` (all
-        when None), rendered per bucket in one call."""
-        slots = [self._slots[i] for i in ids]
-        robot = [{k: np.asarray(out[k], np.float32) for k in ROBOT_STATE} for out in outputs]  # once per bucket
-        obs = [envelope(s.plan, s.step, {k: v[s.row] for k, v in robot[s.bucket].items()}) for s in slots]
+        when None), rendered per bucket in one call. The state arrays are rows of one copy per bucket and call."""
+        table = self._slots
+        obs: list[Observation] = [{}] * ids.size
+        steps = table.step[ids].tolist()
+        for k, at in table.by_bucket(ids):
+            picked_rows = table.row[ids[at]]
+            columns = [list(np.asarray(outputs[k][name], np.float32)[picked_rows]) for name in ROBOT_STATE]
+            for a, s, values in zip(at.tolist(), ids[at].tolist(), zip(*columns)):
+                obs[a] = envelope(table.plans[s], steps[a], dict(zip(ROBOT_STATE, values)))
         fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
 
         def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -587,26 +522,26 @@ class MjxBackend(Backend):
             return fetched[bucket]
 
         if self.render_config is not None:
-            wanted = None if observe is None else {int(i) for i in observe}
+            wanted = np.ones(ids.size, bool) if observe is None else np.isin(ids, np.asarray(observe, np.int64))
             for k, renderer in enumerate(self._renderers):
-                picked = [(o, s) for i, o, s in zip(ids, obs, slots)
-                          if s.bucket == k and (wanted is None or int(i) in wanted)]
-                if not picked:
+                picked = np.flatnonzero(wanted & (table.bucket[ids] == k))
+                if not picked.size:
                     continue
+                picked_rows = table.row[ids[picked]]
                 if isinstance(renderer, BucketCameras):
-                    frames = renderer.frames(self._engine.data[k], self._members[k], [s.row for _, s in picked])
+                    frames = renderer.frames(self._engine.data[k], self._members[k], picked_rows.tolist())
                 else:
-                    qpos = state(k)[0]
-                    frames = renderer.render([self._member[s.plan.hash][1] for _, s in picked],
-                                             [qpos[s.row] for _, s in picked])
-                for (o, _), images in zip(picked, observation_images(frames, self.render_config.cameras)):
-                    o.update(images)
+                    frames = renderer.render([self._member[table.plans[s].hash][1] for s in ids[picked].tolist()],
+                                             list(state(k)[0][picked_rows]))
+                for at, images in zip(picked.tolist(), observation_images(frames, self.render_config.cameras)):
+                    obs[at].update(images)
         if self.privileged:
-            for slot, o in zip(slots, obs):
-                qpos, qvel = state(slot.bucket)
-                layout = self._layouts[slot.plan.hash]
-                o["privileged"] = {"qpos": layout.qpos(qpos[slot.row]), "qvel": layout.qvel(qvel[slot.row]),
-                                   "plan_hash": slot.plan.hash, "plan_path": self.plan_paths.get(slot.plan.hash)}
+            for s, k, r, o in zip(ids.tolist(), table.bucket[ids].tolist(), table.row[ids].tolist(), obs):
+                qpos, qvel = state(k)
+                plan = table.plans[s]
+                layout = self._layouts[plan.hash]
+                o["privileged"] = {"qpos": layout.qpos(qpos[r]), "qvel": layout.qvel(qvel[r]),
+                                   "plan_hash": plan.hash, "plan_path": self.plan_paths.get(plan.hash)}
         return obs
 
     def close(self) -> None:
@@ -618,8 +553,9 @@ class MjxBackend(Backend):
     def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
         """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
         ids = resolve_ids(env_ids, self.num_envs)
-        slots = [self._slots[i] for i in ids]
-        out = [self._layouts[s.plan.hash].qpos(self._engine.data[s.bucket].qpos[s.row]) for s in slots]
+        table = self._slots
+        out = [self._layouts[table.plans[s].hash].qpos(self._engine.data[table.bucket[s]].qpos[table.row[s]])
+               for s in ids.tolist()]
         return np.stack(out) if out else np.zeros((0, 0))
 
 
