@@ -471,6 +471,15 @@ class AsyncPolicyClient:
         """Whether large arrays of infer requests go through shared memory on the current connection."""
         return self._shared
 
+    def lend_shared(self, nbytes: int) -> np.ndarray | None:
+        """A buffer in shared memory for arrays this client will send (``shm.SegmentPool.lend``): one that lies in it
+        in one piece goes as a reference, with no copy. None when this connection does not use shared memory."""
+        return self._pool().lend(nbytes) if self._shared else None
+
+    def give_back_shared(self, buffer: np.ndarray) -> None:
+        """Unlink the segment of a buffer from ``lend_shared``."""
+        self._pool().give_back(buffer)
+
     @property
     def sends_columns(self) -> bool:
         """Whether a batch goes as columns: the option is on and the server advertises ``columnar_batch``."""
@@ -623,6 +632,12 @@ class PolicyClient:
     @property
     def uses_shared_memory(self) -> bool:
         return self._client.uses_shared_memory
+
+    def lend_shared(self, nbytes: int) -> np.ndarray | None:
+        return self._client.lend_shared(nbytes)
+
+    def give_back_shared(self, buffer: np.ndarray) -> None:
+        self._client.give_back_shared(buffer)
 
     def frame_budget(self) -> int:
         return self._client.frame_budget()

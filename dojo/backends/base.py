@@ -71,6 +71,17 @@ class StepResult:
     counters: list[dict[str, int]] = field(default_factory=list)
 
 
+class HostBuffers(Protocol):
+    """Host memory lent to a backend for camera images: buffers in the policy link's shared memory
+    (`xpolicylab.shm.SegmentPool.lend`), so that images copied there from a GPU go to the policy server as they lie."""
+
+    def lend(self, nbytes: int) -> np.ndarray:
+        """A writable uint8 buffer of `nbytes`, kept until `give_back`; MemoryError when none can be had."""
+
+    def give_back(self, buffer: np.ndarray) -> None:
+        """Return a buffer from `lend` (its memory goes once nothing refers to it)."""
+
+
 class ChunkRule(Protocol):
     """A policy's joint-mode rule as array code (xpolicylab's `HoldRule`, `JitterRule`): chunks of `chunk_size`
     rows, each chunk held from the `joint_pos` observed when it starts; row r of a chunk is `row(xp, pose,
@@ -121,6 +132,11 @@ class Backend(ABC):
     def step_with_rule(self, env_ids: Sequence[int] | None = None) -> StepResult:
         """`step` with the attached rule's actions, made where the state is: the result's `obs` is empty."""
         raise NotImplementedError(f"backend {self.name} runs no policy rule inside its step")
+
+    def use_image_buffers(self, buffers: HostBuffers) -> None:
+        """A hint: camera images may be copied into host memory from `buffers` (the policy link's shared memory),
+        through which they reach a policy server on this host without another copy. Backends that copy no
+        images off a device ignore it."""
 
     def prefetch(self, plans: Sequence[Any]) -> None:
         """A hint: these plans will be loaded soon (the runtime's next queued episodes); a backend may prepare

@@ -258,6 +258,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             backend.attach_rule(rule)
             log.info("policy %s runs on the device: backend %s steps its rule itself (no observation out, no "
                      "action in)", meta.name, backend.name)
+        elif meta.cameras and (buffers := policy.image_buffers()) is not None:
+            backend.use_image_buffers(buffers)  # images copied off a GPU go to the policy where they lie
         for i, rec in recorders.items():
             rec.start(slots[i].item, slots[i].plan)
         with split.phase("load"):  # compiling included: the first tick of a batched backend may follow in a step

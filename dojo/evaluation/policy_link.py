@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from dojo.backends.base import ChunkRule
+from dojo.backends.base import ChunkRule, HostBuffers
 from dojo.backends.registry import runs_policy_rules
 from dojo.evaluation.run_dir import LINK_SETTINGS
 from xpolicylab.model import Model, Observation, PolicyMetadata
@@ -43,6 +43,9 @@ class PolicyLink(Protocol):
     def device_rule(self) -> ChunkRule | None:
         """The policy's rule as array code a backend may run in its own step (None: ask `act`)."""
 
+    def image_buffers(self) -> HostBuffers | None:
+        """Host memory that observations' images reach the policy from without a copy (None: none)."""
+
 
 class InProcessPolicy:
     """A `Model` called directly (its batched methods: one call for every environment that needs actions)."""
@@ -65,6 +68,10 @@ class InProcessPolicy:
         """The model's `device_rule()` where it has one (xpolicylab's `zero` and `random`)."""
         offer = getattr(self.model, "device_rule", None)
         return offer() if offer is not None else None
+
+    def image_buffers(self) -> None:
+        """A model in this process reads the backend's arrays as they are."""
+        return None
 
 
 class RemotePolicy:
@@ -92,6 +99,32 @@ class RemotePolicy:
     def device_rule(self) -> None:
         """A served policy runs where it is served."""
         return None
+
+    def image_buffers(self) -> HostBuffers | None:
+        """Buffers in the client's shared memory when this connection uses it: images there go to the server as a
+        reference to where they are (`xpolicylab.shm`, lent buffers)."""
+        return _SharedBuffers(self.client) if self.client.uses_shared_memory else None
+
+
+class _SharedBuffers:
+    """`HostBuffers` over a policy client's lent shared memory."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+
+    def lend(self, nbytes: int) -> np.ndarray:
+        from xpolicylab.shm import NoSharedMemory
+
+        try:
+            buffer = self.client.lend_shared(nbytes)
+        except NoSharedMemory as exc:
+            raise MemoryError(str(exc)) from exc
+        if buffer is None:
+            raise MemoryError("the policy link no longer uses shared memory")
+        return buffer
+
+    def give_back(self, buffer: np.ndarray) -> None:
+        self.client.give_back_shared(buffer)
 
 
 PRIVILEGED_NOTE = "privileged reference: reads the simulator state, not a leaderboard entry"

@@ -62,3 +62,6 @@ def test_rows_render_their_own_member_and_state_and_only_those_asked(engine, mon
     np.testing.assert_array_equal(frames.rgb[:, 0, 0, 1, 0], np.round(slider[[3, 1]] * 1000 + 100).astype(np.uint8))
     assert slider[1] > slider[0] > slider[3]  # the rows were driven apart, so a row mix-up would show
     np.testing.assert_array_equal(frames.depth[:, 0, 0, 0], [3, 1])
+    # Each camera's images of the rows asked for lie one after another on the host (one array per camera for the
+    # policy link, `xpolicylab.columns.Rows.runs`), handed back as a [rows, cameras, ...] view.
+    assert np.swapaxes(frames.rgb, 0, 1).flags.c_contiguous and np.swapaxes(frames.depth, 0, 1).flags.c_contiguous

@@ -57,6 +57,9 @@ class _Asked:
     def device_rule(self) -> Any:
         return self.link.device_rule()
 
+    def image_buffers(self) -> Any:
+        return self.link.image_buffers()
+
     def close(self) -> None:
         self.link.close()
 

@@ -406,3 +406,62 @@ def test_a_segment_whose_arrays_are_lent_out_stays_open_until_they_are_let_go_of
     finally:
         shm._unlink(first)
         shm._unlink(second)
+
+
+def _lent_batch(client: PolicyClient, n: int) -> tuple[np.ndarray, list[dict], list[dict]]:
+    """A lent buffer holding ``n`` observations' images camera-major (as the mjx backend copies them off the GPU),
+    the observations whose images are views of it, and the observations they were copied from."""
+    source = [big_obs(i) for i in range(n)]
+    cams = list(source[0]["images"])
+    shape = source[0]["images"][cams[0]].shape
+    buffer = client.lend_shared(len(cams) * n * int(np.prod(shape)))
+    images = buffer.reshape(len(cams), n, *shape)
+    for c, cam in enumerate(cams):
+        for i, obs in enumerate(source):
+            images[c, i] = obs["images"][cam]
+    lent = [{**obs, "images": {cam: images[c, i] for c, cam in enumerate(cams)}} for i, obs in enumerate(source)]
+    return buffer, lent, source
+
+
+@pytest.mark.parametrize("columnar", [True, False])
+def test_images_in_a_lent_buffer_travel_where_they_lie(client_bytes, columnar):
+    """No copy on the client: a request whose images lie in a buffer the client lent references them there (one
+    array per camera as columns, one per image as a list); no segment is leased for it, and the model is given
+    the right images."""
+    model = Keeper()
+    with serving(model) as srv, PolicyClient(srv.url, shared_memory="on", columnar=columnar) as client:
+        assert client.sends_columns is columnar
+        buffer, lent, source = _lent_batch(client, 6)
+        before = mine()
+        client_bytes.clear()
+        actions = client.infer_batch(lent, list(range(6)))
+        assert mine() == before  # nothing was copied into a segment of the pool's
+        assert sum(client_bytes) < 16384  # 1.3 MB of images did not go through the socket either
+        assert [chunk[0, 0] for chunk in actions] == [checksum(o) for o in source]
+        name = next(n for n in before if os.path.exists(f"/dev/shm/{n}") and
+                    os.path.getsize(f"/dev/shm/{n}") >= buffer.nbytes)
+        del lent
+        client.give_back_shared(buffer)
+        assert not os.path.exists(f"/dev/shm/{name}")  # unlinked at once; its memory goes with the buffer
+        with pytest.raises(ValueError, match="did not lend"):
+            client.give_back_shared(np.zeros(4, np.uint8))
+    del buffer
+    shm.SegmentCache().close()
+    assert not shm._LENT
+
+
+def test_an_array_only_partly_in_a_lent_buffer_is_copied():
+    pool = shm.SegmentPool()
+    try:
+        buffer = pool.lend(1 << 20)
+        inside = buffer[4096:4096 + 300_000]
+        assert pool.lent_at(inside) == (pool.lent_at(buffer)[0], 4096)
+        assert pool.lent_at(buffer[::2]) is None  # not in one piece
+        assert pool.lent_at(np.zeros(1 << 17, np.uint8)) is None
+        rows = shm.columns.Rows([buffer[k * 100_000:(k + 1) * 100_000] for k in (0, 1, 3)])  # a gap: two runs
+        assert pool.lent_at(rows) is None
+        with pool.lease({"a": rows, "b": inside}) as wire:
+            assert wire["b"].segment == pool.lent_at(buffer)[0] and wire["b"].offset == 4096
+            assert wire["a"].segment != wire["b"].segment  # copied into a leased segment
+    finally:
+        pool.close()

@@ -49,7 +49,8 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends import actions as A
-from dojo.backends.base import Backend, ChunkRule, Observation, StepResult, checked_actions, envelope, resolve_ids
+from dojo.backends.base import (Backend, ChunkRule, HostBuffers, Observation, StepResult, checked_actions, envelope,
+                                resolve_ids)
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import init_memory, program_step
 from dojo.backends.predicate_state import gather_state
@@ -338,6 +339,7 @@ class MjxBackend(Backend):
         self._members: list[np.ndarray] = []
         self._joints_per_arm = 0
         self._rule: ChunkRule | None = None
+        self._image_buffers: HostBuffers | None = None
         self.placement = Placement.over(local_devices(devices), self.impl)
         log.info("mjx backend: environments split over %s", self.placement.describe())
 
@@ -403,7 +405,7 @@ class MjxBackend(Backend):
         self._engine = Engine(self._buckets, capacity, self.impl, hooks, example,
                               placement=self.placement, graph_mode=self.graph_mode)
         if self.render_config is not None:
-            self._renderers = [BucketCameras(arr, self.render_config) if self.impl == "warp" else
+            self._renderers = [BucketCameras(arr, self.render_config, self._image_buffers) if self.impl == "warp" else
                                CpuRenderer([m.model for m in arr.bucket.members], self.render_config)
                                for arr in self._engine.arrays]
         log.info("mjx backend: engine built (%.1f s); first tick (compiles on a cold cache)",
@@ -544,10 +546,19 @@ class MjxBackend(Backend):
                                    "plan_hash": plan.hash, "plan_path": self.plan_paths.get(plan.hash)}
         return obs
 
+    def use_image_buffers(self, buffers: HostBuffers) -> None:
+        """Device cameras (`warp`) copy their images into buffers from `buffers` (`host_copy`, lent buffers)."""
+        if self.impl == "warp" and self.render_config is not None:
+            log.info("mjx backend: camera images are copied off the GPU into the policy link's shared memory and "
+                     "sent from there")
+        self._image_buffers = buffers
+        for renderer in self._renderers:
+            if isinstance(renderer, BucketCameras):
+                renderer.use_buffers(buffers)
+
     def close(self) -> None:
         for renderer in self._renderers:
-            if isinstance(renderer, CpuRenderer):
-                renderer.close()
+            renderer.close()
         self._renderers = []
 
     def qpos(self, env_ids: Sequence[int] | None = None) -> np.ndarray:
