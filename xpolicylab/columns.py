@@ -36,10 +36,11 @@ KEY = "columns"
 class Rows:
     """The environments' arrays of one column (same shape and dtype), not yet stacked."""
 
-    __slots__ = ("arrays",)
+    __slots__ = ("arrays", "_runs")
 
     def __init__(self, arrays: Sequence[np.ndarray]) -> None:
         self.arrays = list(arrays)
+        self._runs: list[tuple[int, np.ndarray]] | None = None
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -57,11 +58,17 @@ class Rows:
     def nbytes(self) -> int:
         return self.row_nbytes * len(self.arrays)
 
-    def runs(self) -> Iterator[tuple[int, np.ndarray]]:
+    def runs(self) -> list[tuple[int, np.ndarray]]:
         """``(first row, array of those rows)`` covering every row in order, each run one array over memory that
         is already there: rows that are views of one buffer (C-contiguous each) at a constant distance from one
         another (one after another, or one camera's images of a ``[B, cameras, H, W, 3]`` batch) are one run,
-        without a copy; any other row is its own run."""
+        without a copy; any other row is its own run. Found once (reading each row's address is most of the cost
+        of placing a column, and a request asks twice: whether it lies in a lent buffer, then where it goes)."""
+        if self._runs is None:
+            self._runs = list(self._find_runs())
+        return self._runs
+
+    def _find_runs(self) -> Iterator[tuple[int, np.ndarray]]:
         rows = self.arrays
         start = 0
         while start < len(rows):

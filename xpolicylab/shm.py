@@ -30,6 +30,7 @@ its own tracker would unlink the client's segments when the server exits.
 
 from __future__ import annotations
 
+import atexit
 import ipaddress
 import logging
 import mmap
@@ -135,15 +136,24 @@ def _shared_bytes(value: Any, lent: _Lent = _nothing_lent) -> int:
     if isinstance(value, dict):
         return sum(_shared_bytes(v, lent) for v in value.values())
     if isinstance(value, (list, tuple)):
-        return sum(_shared_bytes(v, lent) for v in value)
+        return 0 if _plain(value) else sum(_shared_bytes(v, lent) for v in value)
     return 0
+
+
+_PLAIN = frozenset({str, int, float, bool, bytes, type(None)})
+
+
+def _plain(values: Sequence[Any]) -> bool:
+    """Whether a list holds only values that never travel shared (a columnar batch's instructions, episode
+    numbers, ...): nothing in it to look into, for thousands of environments."""
+    return all(type(v) in _PLAIN for v in values)
 
 
 def _one_block(value: np.ndarray | columns.Rows) -> np.ndarray | None:
     """``value`` as one C-contiguous array over memory already there (a ``Rows`` whose rows lie one after another
     in one buffer), or None."""
     if isinstance(value, columns.Rows):
-        runs = list(value.runs())
+        runs = value.runs()
         value = runs[0][1] if len(runs) == 1 else None
     return value if value is not None and value.flags.c_contiguous else None
 
@@ -230,7 +240,7 @@ def _place(value: Any, segment: SharedMemory | None, cursor: list[int], jobs: li
     if isinstance(value, dict):
         return {k: _place(v, segment, cursor, jobs, lent) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_place(v, segment, cursor, jobs, lent) for v in value]
+        return list(value) if _plain(value) else [_place(v, segment, cursor, jobs, lent) for v in value]
     return value
 
 
@@ -470,9 +480,19 @@ class SegmentCache:
         _LENT[:] = [s for s in _LENT if not _closed(s)]
 
 
-#: Segments whose close waits for arrays lent out of them (``SegmentCache.close``, ``_close_oldest``), no longer
-#: used for new ones; held here so that their finalizer, which would fail the same way, does not run meanwhile.
+#: Segments whose close waits for arrays lent out of them (``SegmentCache.close``, ``_close_oldest``, and a client's
+#: lent buffers given back while still referred to), no longer used for new ones; held here so that their
+#: finalizer, which would fail the same way, does not run meanwhile.
 _LENT: list[SharedMemory] = []
+
+
+@atexit.register
+def _leave_lent() -> None:
+    """At exit, a segment still waiting for its arrays is left to the process's end, which unmaps it, rather than
+    to its finalizer, which would print a ``BufferError`` it cannot do anything about."""
+    for segment in _LENT:
+        if not _closed(segment):
+            segment.close = lambda: None  # type: ignore[method-assign]
 
 
 def _closed(segment: SharedMemory) -> bool:
