@@ -544,8 +544,19 @@ def column_entry_bytes(batch: dict[str, Any], count: int, shared: bool = False) 
             elif isinstance(value, columns.Rows):
                 fixed += 0 if shared and shm.travels_shared(value) else value.row_nbytes
             else:
-                lists.append(value)
-    return [fixed + sum(observation_bytes(column[i], shared) for column in lists) for i in range(count)]
+                lists.append(_entry_bytes(value, shared))
+    return [fixed + sum(sizes) for sizes in zip(*lists)] if lists else [fixed] * count
+
+
+def _entry_bytes(column: list[Any], shared: bool) -> list[int]:
+    """``observation_bytes`` of each entry of a list column; a column of strings or of numbers (instructions,
+    episode numbers: thousands of entries per batch) without a call per entry."""
+    kinds = set(map(type, column))
+    if kinds <= {str}:
+        return list(map(len, column))
+    if kinds <= {int, float, bool, type(None)}:
+        return [8] * len(column)
+    return [observation_bytes(v, shared) for v in column]
 
 
 def batch_spans(sizes: Sequence[int], budget: int) -> list[tuple[int, int]]:

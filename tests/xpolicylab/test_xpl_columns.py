@@ -71,7 +71,8 @@ def test_observations_of_other_layouts_are_not_columns():
     assert isinstance(batch["images"]["head"], list) and isinstance(batch["images"]["left_wrist"], columns.Rows)
 
 
-def test_rows_of_one_buffer_travel_as_that_buffer():
+def test_rows_of_one_buffer_travel_as_that_buffer(monkeypatch):
+    monkeypatch.setattr(columns, "STACKED_ROW_BYTES", 0)  # rows this small are stacked otherwise (the test below)
     buffer = np.arange(6 * 4 * 3, dtype=np.uint8).reshape(6, 4, 3)
     rows = columns.Rows([buffer[i] for i in range(6)])
     (start, run), = rows.runs()
@@ -85,8 +86,9 @@ def test_rows_of_one_buffer_travel_as_that_buffer():
     assert np.array_equal(columns.Rows([buffer[0]] * 3).joined(), np.stack([buffer[0]] * 3))  # one row, 3 times
 
 
-def test_one_camera_of_a_batch_with_a_camera_axis_is_one_strided_run():
+def test_one_camera_of_a_batch_with_a_camera_axis_is_one_strided_run(monkeypatch):
     """A batched renderer's ``[B, cameras, H, W, 3]``: one camera's rows are a camera's size apart."""
+    monkeypatch.setattr(columns, "STACKED_ROW_BYTES", 0)
     batch = np.random.default_rng(0).integers(0, 256, (5, 3, 4, 6, 3), dtype=np.uint8)
     rows = columns.Rows([batch[i, 1] for i in range(5)])
     (start, run), = rows.runs()
@@ -95,6 +97,14 @@ def test_one_camera_of_a_batch_with_a_camera_axis_is_one_strided_run():
     assert joined.flags.c_contiguous and np.array_equal(joined, batch[:, 1])
     backwards = columns.Rows([batch[i, 1] for i in (4, 3, 2)])  # later rows first: no run
     assert len(list(backwards.runs())) == 3 and np.array_equal(backwards.joined(), batch[[4, 3, 2], 1])
+
+
+def test_small_rows_are_stacked_into_one_run_whatever_their_addresses():
+    state = np.arange(8 * 14, dtype=np.float32).reshape(8, 14)
+    rows = columns.Rows([state[i] for i in (3, 1, 2, 0, 4, 5, 7, 6)])  # out of order: no run to find
+    (start, run), = rows.runs()
+    assert start == 0 and not np.shares_memory(run, state) and np.array_equal(run, state[[3, 1, 2, 0, 4, 5, 7, 6]])
+    assert rows.runs() is rows.runs()  # found once
 
 
 @pytest.mark.parametrize(("bad", "field", "words"), [
