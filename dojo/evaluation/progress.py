@@ -38,6 +38,11 @@ RATE_WINDOW_S = 30.0
 """The recent speed counts the interactions of the last this many seconds."""
 HEARTBEAT_S = 10.0
 """In `jsonl` mode, a `progress` line at most this often while environments step."""
+REFRESH_S = 0.1
+"""In `rich` mode, the display's numbers are brought up to date at most this often."""
+FLUSH_S = 0.2
+"""In `jsonl` mode, episode lines are flushed at most this long after they are written (and at every step and the
+end): a batch of 2,048 environments ends its episodes together, and a flush per line was half of writing them."""
 
 
 class Progress:
@@ -64,6 +69,9 @@ class Progress:
         self._interactions = 0
         self._samples: deque[tuple[float, int]] = deque()  # (time, interactions so far) within RATE_WINDOW_S
         self._last_line = self._start
+        self._last_flush = self._start
+        self._last_refresh = -float("inf")
+        self._unflushed = False
         self._closed = False
         self._dim_counts: dict[str, list[int]] = {}  # dimension -> [successes, episodes]
         self.done = 0
@@ -88,7 +96,7 @@ class Progress:
         self._new_episodes += 1
         if self.mode == "jsonl":
             self._last_line = self._clock()
-            self._emit({"event": "episode", **self.snapshot(), "episode": {
+            self._emit(flush=False, record={"event": "episode", **self.snapshot(), "episode": {
                 "task": row.task, "dimension": row.dimension, "setting": row.setting, "split": row.split,
                 "eval_seed": row.eval_seed, "index": row.episode, "success": row.success, "score": row.score,
                 "steps": row.steps, "failure_reason": row.failure_reason,
@@ -108,6 +116,8 @@ class Progress:
         if self.mode == "jsonl" and now - self._last_line >= HEARTBEAT_S:
             self._last_line = now
             self._emit({"event": "progress", **self.snapshot()})
+        elif self._unflushed:
+            self._flush()
         self._refresh()
 
     def close(self) -> None:
@@ -116,7 +126,7 @@ class Progress:
             return
         self._closed = True
         if self._live is not None:
-            self._refresh()
+            self._refresh(force=True)
             self._live.stop()
         if self.mode == "jsonl":
             self._emit({"event": "summary", **self.snapshot()})
@@ -158,7 +168,9 @@ class Progress:
         """Interactions per second since the oldest step counted in the window, up to now (a stalled run's rate
         falls); None before two steps were counted in it."""
         now = self._clock()
-        recent = [s for s in self._samples if s[0] >= now - RATE_WINDOW_S]
+        recent = self._samples
+        while recent and recent[0][0] < now - RATE_WINDOW_S:  # time only moves on: older samples are never read again
+            recent.popleft()
         if len(recent) < 2 or now <= recent[0][0]:
             return None
         return round((recent[-1][1] - recent[0][1]) / (now - recent[0][0]), 2)
@@ -171,9 +183,16 @@ class Progress:
 
     # -- output --------------------------------------------------------------------------------------------
 
-    def _emit(self, record: dict[str, Any]) -> None:
+    def _emit(self, record: dict[str, Any], flush: bool = True) -> None:
+        """Write one line; flushed now, or with `flush=False` once `FLUSH_S` has passed since the last flush."""
         self._stream.write(json.dumps(record) + "\n")
+        self._unflushed = True
+        if flush or self._clock() - self._last_flush >= FLUSH_S:
+            self._flush()
+
+    def _flush(self) -> None:
         self._stream.flush()
+        self._last_flush, self._unflushed = self._clock(), False
 
     def _renderable(self) -> Group:
         snap = self.snapshot()
@@ -183,9 +202,12 @@ class Progress:
         ) or "no episodes finished yet", style="dim")
         return Group(self._bar, dims)
 
-    def _refresh(self) -> None:
-        if self._live is None:
+    def _refresh(self, force: bool = False) -> None:
+        """Update the live display; at most every `REFRESH_S` unless `force` (it redraws only 4 times a second, and a
+        batch ends thousands of episodes at once)."""
+        if self._live is None or (not force and self._clock() - self._last_refresh < REFRESH_S):
             return
+        self._last_refresh = self._clock()
         snap = self.snapshot()
         if not self._interactions and self._resumed:  # nothing stepped yet (or nothing left): no rate to show
             left = self.total - self.done

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from dojo.evaluation.progress import HEARTBEAT_S, RATE_WINDOW_S, Progress
+from dojo.evaluation.progress import FLUSH_S, HEARTBEAT_S, RATE_WINDOW_S, Progress
 
 
 class FakeClock:
@@ -39,6 +39,36 @@ def test_jsonl_lines_and_summary(make_row):
     assert second["success_by_dimension"] == {"memory": {"successes": 1, "episodes": 2, "success_pct": 50.0}}
     assert second["eta_s"] == pytest.approx(20.0)
     assert summary["done"] == 2 and summary["interactions"] == 500
+
+
+class Flushes(io.StringIO):
+    """A stream that counts its flushes and the lines written by each."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.flushed: list[int] = []
+
+    def flush(self) -> None:
+        self.flushed.append(self.getvalue().count("\n"))
+
+
+def test_episode_lines_that_end_together_are_flushed_together(make_row):
+    """A batch ends thousands of episodes at once: their lines go out in one flush, at most `FLUSH_S` late, and at
+    the next step or the end at the latest."""
+    clock, out = FakeClock(), Flushes()
+    progress = Progress(10, mode="jsonl", stream=out, clock=clock)
+    for k in range(3):
+        progress.episode_finished(make_row(episode=k))
+    assert out.getvalue().count("\n") == 3 and out.flushed == []  # written, not yet flushed
+    progress.interactions(8)  # the next step
+    assert out.flushed == [3]
+    progress.episode_finished(make_row(episode=3))
+    clock.now += FLUSH_S
+    progress.episode_finished(make_row(episode=4))  # FLUSH_S after the last flush: both go out
+    assert out.flushed == [3, 5]
+    progress.episode_finished(make_row(episode=5))
+    progress.close()
+    assert out.flushed[-1] == 7  # the sixth episode and the summary
 
 
 def test_the_recent_speed_leaves_start_up_out_and_falls_when_the_run_stalls():
