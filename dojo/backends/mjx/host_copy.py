@@ -11,7 +11,7 @@ same way, `xpolicylab.codec._BufferPool`).
 
 Lent buffers (`buffers`, the policy link's shared memory, `dojo.backends.base.HostBuffers`): the buffers are
 taken from there instead and page-locked (`page_lock`), so that images copied into them reach a policy server on
-this host as they lie, without the client copying them into shared memory (about 90 ms a request at 2,048
+this host as they lie, without the client copying them into shared memory (about 36 ms a request at 2,048
 environments' three 224x224 images on the H200 host); the GPU's copy into them runs as fast as into Warp's own.
 
 Page-locked memory is slow to allocate, so the buffers are kept (at most `RING`; a caller that holds on to more
