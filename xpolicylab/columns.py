@@ -69,8 +69,8 @@ class Rows:
         is already there: rows that are views of one buffer (C-contiguous each) at a constant distance from one
         another (one after another, or one camera's images of a ``[B, cameras, H, W, 3]`` batch) are one run,
         without a copy; any other row is its own run. Small rows (`STACKED_ROW_BYTES`) are one run, stacked. Found
-        once (reading each row's address is most of the cost
-        of placing a column, and a request asks twice: whether it lies in a lent buffer, then where it goes)."""
+        once: reading each row's address is most of the cost of placing a column, and a request asks twice
+        (whether it lies in a lent buffer, then where it goes)."""
         if self._runs is None:
             self._runs = list(self._find_runs())
         return self._runs

@@ -379,12 +379,11 @@ class MjxBackend(Backend):
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)
                          for b in self._buckets for m in b.members}
         buckets = [self._member[plan.hash][0] for plan in plans]
-        starts = np.bincount(buckets, minlength=len(self._buckets))  # rows each bucket's first slots take
         rows = [0] * len(plans)
-        taken = [0] * len(self._buckets)
+        taken = [0] * len(self._buckets)  # rows each bucket's first slots take
         for s, k in enumerate(buckets):
             rows[s], taken[k] = taken[k], taken[k] + 1
-        capacity = [self.placement.padded(max(int(starts[k]), min(len(plans), len(bucket.members))))
+        capacity = [self.placement.padded(max(taken[k], min(len(plans), len(bucket.members))))
                     for k, bucket in enumerate(self._buckets)]
         self._slots = SlotTable(plans, buckets, rows, capacity)
         self._members = [np.zeros(size, np.int32) for size in capacity]
