@@ -55,10 +55,12 @@ class StepResult:
     success term (`ProgramLayout.term_names`) to whether it holds now (empty for a backend that does not say).
     `counters[i]` holds the backend's own counts over the episode so far, by name (empty for a backend that keeps
     none; the `real` backend: its safety layer's clips and refusals), recorded with the episode.
+    `obs` is any sequence: a batched backend may build each observation only when it is read (`mjx.observations`),
+    since a run loop reads those of the slots it asks the policy for next, not all of them every step.
     """
 
     env_ids: np.ndarray
-    obs: list[Observation]
+    obs: Sequence[Observation]
     success: np.ndarray
     score: np.ndarray
     done: np.ndarray

@@ -240,11 +240,14 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         if recorders:
             for k, i in enumerate(ids):
                 recorders[i].add(obs[i], actions[k])
-        # Images only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
-        observe = ids if recorders else stepped[chunks.exhausted(stepped)].tolist()
+        else:
+            for i in need:  # asked: nothing reads these again, and their images hold buffers the backend reuses
+                del obs[i]
+        # Observations only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
+        looked = range(len(ids)) if recorders else np.flatnonzero(chunks.exhausted(stepped)).tolist()
         with split.phase("backend steps"):
-            result = backend.step(actions, ids, mode=meta.action_mode, observe=observe)
-        obs.update(zip(ids, result.obs))
+            result = backend.step(actions, ids, mode=meta.action_mode, observe=[ids[k] for k in looked])
+        obs.update((ids[k], result.obs[k]) for k in looked)
         return result
 
     def device_step() -> StepResult:

@@ -203,15 +203,21 @@ class ResultsStore:
     def add_many(self, results: Sequence[EpisodeResult]) -> int:
         """Record the episodes that finished together (one batched tick) in one durable transaction: all or
         none of them survive a crash, at the cost of one disk sync instead of one per episode. Returns how many
-        were new; existing keys keep their stored rows."""
-        rows = [[json.dumps(getattr(r, c), sort_keys=True) if c in _JSON_COLUMNS else getattr(r, c) for c in _COLUMNS]
-                for r in results]
-        inserted = 0
+        were new; existing keys keep their stored rows. Rows that share a value (a run's policy metadata is one
+        dict for all of its episodes) have it encoded once: thousands of episodes can end in one tick."""
+        encoded: dict[int, str] = {}  # id -> JSON, for objects `results` keeps alive throughout
+
+        def as_json(value: Any) -> str:
+            text = encoded.get(id(value))
+            if text is None:
+                text = encoded[id(value)] = json.dumps(value, sort_keys=True)
+            return text
+
+        rows = [[as_json(getattr(r, c)) if c in _JSON_COLUMNS else getattr(r, c) for c in _COLUMNS] for r in results]
+        for values in rows:
+            values[_SUCCESS] = int(values[_SUCCESS])
         with self._transaction():
-            for values in rows:
-                values[_SUCCESS] = int(values[_SUCCESS])
-                inserted += self._db.execute(_INSERT, values).rowcount
-        return inserted
+            return self._db.executemany(_INSERT, rows).rowcount
 
     def finished(self, run_id: str) -> set[EpisodeKey]:
         """The keys of the episodes of `run_id` that are already recorded: what a resumed run must skip."""

@@ -189,3 +189,17 @@ def test_add_many_is_one_transaction_and_idempotent(tmp_path, make_row):
         with pytest.raises(sqlite3.IntegrityError):  # and the whole batch is rolled back
             store.add_many([make_row(episode=10), broken])
         assert store.count() == 5
+
+
+def test_add_many_keeps_each_rows_values_when_rows_share_objects(tmp_path, make_row):
+    """A run's rows share one policy metadata dict (encoded once per batch); other values are each row's own."""
+    meta = {"checkpoint": "c", "chunk": 8}
+    stages = {"grasp": 3, "place": None}
+    batch = [make_row(episode=i, policy_meta=meta, stage_times=stages if i % 2 else {"grasp": i, "place": 7})
+             for i in range(4)]
+    batch.append(make_row(episode=1, policy_meta={"other": 1}))  # a key twice in one batch: the first row wins
+    with ResultsStore(tmp_path / "r.sqlite") as store:
+        assert store.add_many(batch) == 4
+        stored = sorted(store.rows(), key=lambda r: r.episode)
+    assert stored == batch[:4]
+    assert [r.stage_times["grasp"] for r in stored] == [0, 3, 2, 3] and stored[1].policy_meta == meta

@@ -65,6 +65,7 @@ from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.merge_groups import GROWTH
+from dojo.backends.mjx.observations import StepObservations
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
 from dojo.backends.mjx.slots import FREE, SlotTable
@@ -438,7 +439,7 @@ class MjxBackend(Backend):
                 self._members[k][row] = self._member[plan.hash][1]
         self._slots.restart(ids)
         outputs = self._tick(self._slots.flags(ids), self._slots.flags(ids[:0]), self._idle_inputs())
-        return self._observations(ids, outputs)
+        return list(self._observations(ids, outputs))
 
     def _idle_inputs(self) -> list[Tree]:
         """Per bucket, the tick's inputs when the host sends no actions (resets): zero action rows, or nothing at
@@ -501,17 +502,16 @@ class MjxBackend(Backend):
         return layout
 
     def _observations(self, ids: np.ndarray, outputs: list[dict[str, np.ndarray]],
-                      observe: Sequence[int] | None = None) -> list[Observation]:
-        """Observations of slots `ids`; images (when the backend has cameras) only for those in `observe` (all
-        when None), rendered per bucket in one call. The state arrays are rows of one copy per bucket and call."""
+                      observe: Sequence[int] | None = None) -> StepObservations:
+        """Observations of slots `ids`, each built when read (`observations`); images (when the backend has
+        cameras) only for those in `observe` (all when None), rendered per bucket in one call. The state arrays
+        are rows of one copy per bucket and call."""
         table = self._slots
-        obs: list[Observation] = [{}] * ids.size
-        steps = table.step[ids].tolist()
-        for k, at in table.by_bucket(ids):
-            picked_rows = table.row[ids[at]]
-            columns = [list(np.asarray(outputs[k][name], np.float32)[picked_rows]) for name in ROBOT_STATE]
-            for a, s, values in zip(at.tolist(), ids[at].tolist(), zip(*columns)):
-                obs[a] = envelope(table.plans[s], steps[a], dict(zip(ROBOT_STATE, values)))
+        positions = ids.tolist()
+        observations = StepObservations(
+            [table.plans[s] for s in positions], table.step[ids].tolist(), table.bucket[ids].tolist(),
+            table.row[ids].tolist(),
+            {k: {name: np.array(outputs[k][name], np.float32) for name in ROBOT_STATE} for k, _ in table.by_bucket(ids)})
         fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
 
         def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -535,15 +535,15 @@ class MjxBackend(Backend):
                     frames = renderer.render([self._member[table.plans[s].hash][1] for s in ids[picked].tolist()],
                                              list(state(k)[0][picked_rows]))
                 for at, images in zip(picked.tolist(), observation_images(frames, self.render_config.cameras)):
-                    obs[at].update(images)
+                    observations.add(at, images)
         if self.privileged:
-            for s, k, r, o in zip(ids.tolist(), table.bucket[ids].tolist(), table.row[ids].tolist(), obs):
+            for at, (s, k, r) in enumerate(zip(positions, table.bucket[ids].tolist(), table.row[ids].tolist())):
                 qpos, qvel = state(k)
                 plan = table.plans[s]
                 layout = self._layouts[plan.hash]
-                o["privileged"] = {"qpos": layout.qpos(qpos[r]), "qvel": layout.qvel(qvel[r]),
-                                   "plan_hash": plan.hash, "plan_path": self.plan_paths.get(plan.hash)}
-        return obs
+                observations.add(at, {"privileged": {"qpos": layout.qpos(qpos[r]), "qvel": layout.qvel(qvel[r]),
+                                                     "plan_hash": plan.hash, "plan_path": self.plan_paths.get(plan.hash)}})
+        return observations
 
     def use_image_buffers(self, buffers: HostBuffers) -> None:
         """Device cameras (`warp`) copy their images into buffers from `buffers` (`host_copy`, lent buffers)."""

@@ -146,7 +146,7 @@ class SlotTable:
             self.terms[s] = dict(zip(layout.term_names, term_row))
         read.stage[rows[at]], read.terms[rows[at]], read.valid[rows[at]] = stage[at], terms[at], True
 
-    def result(self, ids: np.ndarray, obs: list[Observation], clipped: np.ndarray) -> StepResult:
+    def result(self, ids: np.ndarray, obs: Sequence[Observation], clipped: np.ndarray) -> StepResult:
         """The step's result for slots `ids` (the maps handed out as they are: they are replaced, never changed)."""
         positions = ids.tolist()
         return StepResult(
