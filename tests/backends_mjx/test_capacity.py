@@ -3,6 +3,7 @@ the backend's choice of implementation. CPU only (MuJoCo Warp's side is in test_
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import mujoco
@@ -12,7 +13,7 @@ from conftest import toy_plan
 
 from dojo.backends.mjx import batch
 from dojo.backends.mjx.batch import (OVERFLOW_FLAGS, REST_MARGIN, CapacityOverflow, Engine, contact_capacity,
-                                     decode_overflow, rest_constraints)
+                                     decode_overflow, rest_constraints, rest_counts)
 from dojo.backends.mjx.bucket import make_buckets
 
 
@@ -31,6 +32,43 @@ def test_capacity_covers_the_resting_contacts_with_margin(crowded):
     contacts, rows = contact_capacity(crowded)
     assert contacts >= REST_MARGIN * data.ncon and rows >= REST_MARGIN * data.nefc
     assert rows >= 6 * contacts  # every contact can take its rows (elliptic cones, condim up to 6)
+
+
+def test_each_member_is_counted_as_a_fresh_mjdata_counts_it_in_any_order():
+    """One MjData serves every member (reset to each in turn): a member counted after a crowded one must not keep
+    what the crowded one had."""
+    plans = [toy_plan(setting="random", seed=s, clutter=("ball",) * n) for s, n in ((0, 10), (1, 0), (2, 4), (3, 1))]
+    bucket = make_buckets(plans)[0]
+    assert len(bucket.members) == 4
+
+    def fresh(member) -> tuple[int, int]:
+        data = mujoco.MjData(member.model)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
+        mujoco.mj_forward(member.model, data)
+        return int(data.ncon), int(data.nefc)
+
+    expected = [fresh(m) for m in bucket.members]
+    assert len(set(expected)) == 4  # every member rests differently
+    assert rest_counts(bucket) == expected
+    bucket.members.reverse()
+    assert rest_counts(bucket) == expected[::-1]
+    assert rest_constraints(bucket) == (max(c for c, _ in expected), max(r for _, r in expected))
+
+
+def test_a_members_state_outside_its_joints_is_its_own():
+    """A kinematic (mocap) wall is placed by each member's model, not by the member counted before: against the
+    block in the first plan, clear of it in the second."""
+    plans = []
+    for seed, y in ((0, 0.04), (1, 0.5)):
+        plan = toy_plan(seed=seed, fixture_y=y)
+        plans.append(dataclasses.replace(plan, model_xml=plan.model_xml.replace('<body name="wall"',
+                                                                                '<body name="wall" mocap="true"')))
+    bucket = make_buckets(plans)[0]
+    assert len(bucket.members) == 2 and bucket.members[0].model.nmocap == 1
+    touching, clear = rest_counts(bucket)
+    assert touching[0] > clear[0]
+    bucket.members.reverse()
+    assert rest_counts(bucket) == [clear, touching]
 
 
 def test_capacity_is_raised_by_what_the_plans_have_at_rest(crowded, monkeypatch):

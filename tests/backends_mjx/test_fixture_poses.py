@@ -6,6 +6,8 @@ solves alone."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
@@ -45,3 +47,33 @@ def test_each_environment_has_its_own_members_fixture_after_resets_and_refills(e
         for env, member in enumerate(members):
             np.testing.assert_allclose(got[env], expected[member], atol=1e-6)
         assert len({round(float(y), 3) for y in got[:, 1]}) == len(set(members.tolist()))
+
+
+
+def test_the_tables_geom_poses_are_each_members_own_mocap_included() -> None:
+    """`Bucket.geom_poses` computes every member's poses with one MjData, reset to each member's model in turn: a
+    fixture (the wall) and a kinematic (mocap) body must sit where each member's own model puts them, whatever
+    member came before."""
+    lift = '<body name="lift" mocap="true" pos="0.4 {y} 0.3"><geom name="lift/g0" type="sphere" size="0.02"/></body>'
+    plans = [toy_plan(seed=k, fixture_y=y) for k, y in enumerate(WALLS)]
+    plans = [dataclasses.replace(p, model_xml=p.model_xml.replace('<body name="wall"', lift.format(y=0.1 * k)
+                                                                  + '<body name="wall"'))
+             for k, p in enumerate(plans)]
+    bucket = make_buckets(plans)[0]
+    assert len(bucket.members) == 3 and bucket.model.nmocap == 1
+    at = mujoco.mj_name2id(bucket.model, mujoco.mjtObj.mjOBJ_GEOM, "lift/g0")
+
+    def fresh(member) -> tuple[np.ndarray, np.ndarray]:
+        data = mujoco.MjData(member.model)
+        data.qpos[:] = member.qpos
+        mujoco.mj_kinematics(member.model, data)
+        return data.geom_xpos.copy(), data.geom_xmat.reshape(-1, 3, 3).copy()
+
+    for members in (list(bucket.members), list(bucket.members)[::-1]):
+        bucket.members[:] = members
+        positions, rotations = bucket.geom_poses()
+        for k, member in enumerate(members):
+            want_pos, want_rot = fresh(member)
+            np.testing.assert_array_equal(positions[k], want_pos)
+            np.testing.assert_array_equal(rotations[k], want_rot)
+        assert len({round(float(y), 3) for y in positions[:, at, 1]}) == 3  # each member's own lift

@@ -106,17 +106,18 @@ class Bucket:
 
     def geom_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Every member's geom world positions [members, ngeom, 3] and rotations [members, ngeom, 3, 3] at its
-        initial state (MuJoCo's kinematics on the member's model; see `table`)."""
-        poses = [_geom_poses(m.model, m.qpos) for m in self.members]
-        return np.stack([p for p, _ in poses]), np.stack([r for _, r in poses])
-
-
-def _geom_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every geom's world position [ngeom, 3] and rotation [ngeom, 3, 3] at `qpos` (MuJoCo's kinematics)."""
-    data = mujoco.MjData(model)
-    data.qpos[:] = qpos
-    mujoco.mj_kinematics(model, data)
-    return data.geom_xpos.copy(), data.geom_xmat.reshape(-1, 3, 3).copy()
+        initial state (MuJoCo's kinematics on the member's model; see `table`). One MjData serves every member
+        (they share a structure), reset to each member's model first (its mocap bodies' poses are its own):
+        allocating one per member was most of the time (`batch.rest_counts` does the same)."""
+        data = mujoco.MjData(self.model)
+        positions = np.empty((len(self.members), self.model.ngeom, 3))
+        rotations = np.empty((len(self.members), self.model.ngeom, 3, 3))
+        for k, member in enumerate(self.members):
+            mujoco.mj_resetData(member.model, data)
+            data.qpos[:] = member.qpos
+            mujoco.mj_kinematics(member.model, data)
+            positions[k], rotations[k] = data.geom_xpos, data.geom_xmat.reshape(-1, 3, 3)
+        return positions, rotations
 
 
 def _initial_state(padded: PaddedPlan, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
