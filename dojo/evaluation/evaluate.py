@@ -208,6 +208,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             chunks.clear(np.asarray(ids, np.int64))
             for i in ids[len(refill):]:
                 del slots[i]
+                obs.pop(i, None)  # a retired slot's last images would hold their buffer to the end of the run
             if refill:
                 items = [todo.popleft() for _ in refill]
                 for i, item in zip(refill, items):
@@ -241,8 +242,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
             for k, i in enumerate(ids):
                 recorders[i].add(obs[i], actions[k])
         else:
-            for i in need:  # asked: nothing reads these again, and their images hold buffers the backend reuses
-                del obs[i]
+            for i in need:  # asked: nothing reads these again, and kept they would hold their images (buffers
+                del obs[i]  # the backend reuses) until the slot is next observed, steps later
         # Observations only where they will be looked at: a slot whose chunk just ran out, or every slot recorded.
         looked = range(len(ids)) if recorders else np.flatnonzero(chunks.exhausted(stepped)).tolist()
         with split.phase("backend steps"):

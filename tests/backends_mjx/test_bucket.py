@@ -9,7 +9,8 @@ from conftest import toy_plan
 from mujoco import mjx
 
 from dojo.backends.mjx.backend import PlanLayout
-from dojo.backends.mjx.bucket import VALUE_FIELDS, compiled_models, make_buckets, structural_signature
+from dojo.backends.mjx.bucket import (VALUE_FIELDS, compiled_models, make_buckets, member_data,
+                                      structural_signature)
 from dojo.backends.mjx.pad import GRAVCOMP_IN_USE, PARK_ORIGIN, pad_group
 
 RANDOM_CLUTTER = [("ball",), ("box", "ball"), (), ("ball", "ball")]
@@ -75,3 +76,20 @@ def test_structural_signature_matches_mjx_static_structure():
     assert ta == tb
     other = mujoco.MjModel.from_xml_string(toy_plan(task="other", block_size=0.05).model_xml)
     assert structural_signature(other) != structural_signature(a)
+
+
+def test_member_data_shares_an_mjdata_only_between_models_of_one_layout():
+    """Members of one structure share one MjData; a member of another (more clutter, other sizes) gets its own,
+    and every one is in the state a fresh MjData of its model starts in."""
+    small = make_buckets([toy_plan(seed=0), toy_plan(seed=1)])[0]
+    large = make_buckets([toy_plan(setting="random", seed=2, clutter=("ball", "box"))])[0]
+    members = [small.members[0], large.members[0], small.members[1]]
+    seen = []
+    for member, data in member_data(members):
+        fresh = mujoco.MjData(member.model)
+        assert data.qpos.shape == fresh.qpos.shape and data.narena == fresh.narena
+        np.testing.assert_array_equal(data.qpos, fresh.qpos)
+        np.testing.assert_array_equal(data.mocap_pos, fresh.mocap_pos)
+        data.qpos[:] = 7.0  # what the caller writes must not reach the next member
+        seen.append(id(data))
+    assert seen[0] == seen[2] != seen[1]

@@ -14,7 +14,7 @@ from conftest import toy_plan
 from dojo.backends.mjx import batch
 from dojo.backends.mjx.batch import (OVERFLOW_FLAGS, REST_MARGIN, CapacityOverflow, Engine, contact_capacity,
                                      decode_overflow, rest_constraints, rest_counts)
-from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.bucket import Member, make_buckets
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def test_each_member_is_counted_as_a_fresh_mjdata_counts_it_in_any_order():
     bucket = make_buckets(plans)[0]
     assert len(bucket.members) == 4
 
-    def fresh(member) -> tuple[int, int]:
+    def fresh(member: Member) -> tuple[int, int]:
         data = mujoco.MjData(member.model)
         data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
         mujoco.mj_forward(member.model, data)

@@ -14,7 +14,7 @@ import pytest
 from conftest import toy_plan
 
 from dojo.backends.mjx.batch import Engine
-from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.bucket import Member, make_buckets
 from dojo.backends.mjx.cache import warp_installed
 
 WALLS = (0.25, -0.15, 0.05)
@@ -49,7 +49,6 @@ def test_each_environment_has_its_own_members_fixture_after_resets_and_refills(e
         assert len({round(float(y), 3) for y in got[:, 1]}) == len(set(members.tolist()))
 
 
-
 def test_the_tables_geom_poses_are_each_members_own_mocap_included() -> None:
     """`Bucket.geom_poses` computes every member's poses with one MjData, reset to each member's model in turn: a
     fixture (the wall) and a kinematic (mocap) body must sit where each member's own model puts them, whatever
@@ -63,7 +62,7 @@ def test_the_tables_geom_poses_are_each_members_own_mocap_included() -> None:
     assert len(bucket.members) == 3 and bucket.model.nmocap == 1
     at = mujoco.mj_name2id(bucket.model, mujoco.mjtObj.mjOBJ_GEOM, "lift/g0")
 
-    def fresh(member) -> tuple[np.ndarray, np.ndarray]:
+    def fresh(member: Member) -> tuple[np.ndarray, np.ndarray]:
         data = mujoco.MjData(member.model)
         data.qpos[:] = member.qpos
         mujoco.mj_kinematics(member.model, data)

@@ -72,3 +72,10 @@ def test_fields_added_at_the_step_travel_with_the_observation() -> None:
     assert seq[1]["images"]["head"] is image and seq[1]["privileged"] == {"plan_hash": "h"}
     assert "images" not in seq[0] and "images" not in list(seq)[2]
     assert list(seq)[3]["images"]["head"][0, 0, 0] == 10
+
+
+def test_fields_added_after_a_read_reach_the_observation_read() -> None:
+    seq, _ = _case()
+    first = seq[2]
+    seq.add(2, {"images": {"head": np.zeros((2, 2, 3), np.uint8)}})
+    assert seq[2] is first and "images" in first

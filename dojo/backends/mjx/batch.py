@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.bucket import Bucket, member_data
 from dojo.backends.mjx.capture import run_settled
 from dojo.backends.mjx.sharding import Placement
 from dojo.backends.mjx.substeps import substeps
@@ -91,14 +91,10 @@ def rest_constraints(bucket: Bucket) -> tuple[int, int]:
 
 
 def rest_counts(bucket: Bucket) -> list[tuple[int, int]]:
-    """Each member's contacts and constraint rows in its initial state. The members share one structure, so one
-    MjData serves them all, reset to each member's model in turn: as a fresh one would be, without allocating it
-    (which was most of the time: 0.8 of 0.85 ms a member on the CI machine, 6 s for 6,144 `insert_tubes` plans on
-    the H200 host)."""
-    data = mujoco.MjData(bucket.model)
+    """Each member's contacts and constraint rows in its initial state (`member_data`: 6 s for 6,144
+    `insert_tubes` plans on the H200 host when each member allocated its own MjData)."""
     counts = []
-    for member in bucket.members:
-        mujoco.mj_resetData(member.model, data)
+    for member, data in member_data(bucket.members):
         data.qpos[:], data.qvel[:], data.ctrl[:] = member.qpos, member.qvel, member.ctrl
         mujoco.mj_forward(member.model, data)
         counts.append((int(data.ncon), int(data.nefc)))

@@ -13,7 +13,7 @@ reused.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any, overload
+from typing import Any, cast, overload
 
 import numpy as np
 
@@ -34,6 +34,8 @@ class StepObservations(Sequence[Observation]):
     def add(self, at: int, fields: Mapping[str, Any]) -> None:
         """Fields observation `at` carries besides its state (images, privileged state), made at the step."""
         self._added.setdefault(at, {}).update(fields)
+        if self._built[at] is not None:
+            self._built[at].update(fields)
 
     def __len__(self) -> int:
         return len(self._plans)
@@ -64,9 +66,10 @@ class StepObservations(Sequence[Observation]):
                 columns = [list(column[rows[picked]]) for column in state.values()]
                 for at, values in zip(missing[picked].tolist(), zip(*columns)):
                     self._built[at] = self._make(at, dict(zip(state, values)))
-        return iter(self._built)
+        return iter(cast(list[Observation], self._built))
 
     def _make(self, at: int, state: dict[str, np.ndarray]) -> Observation:
+        """Observation `at` from its robot state: the envelope every backend returns, and what `add` attached."""
         built = envelope(self._plans[at], self._steps[at], state)
         built.update(self._added.get(at, ()))
         return built
