@@ -34,8 +34,9 @@ class StepObservations(Sequence[Observation]):
     def add(self, at: int, fields: Mapping[str, Any]) -> None:
         """Fields observation `at` carries besides its state (images, privileged state), made at the step."""
         self._added.setdefault(at, {}).update(fields)
-        if self._built[at] is not None:
-            self._built[at].update(fields)
+        built = self._built[at]
+        if built is not None:
+            built.update(fields)
 
     def __len__(self) -> int:
         return len(self._plans)
