@@ -23,14 +23,18 @@ import shlex
 import shutil
 import socket
 import subprocess
+import sqlite3
 import sys
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+DEFAULT_SUITE_TASKS = yaml.safe_load((REPO / "specs" / "suites" / "robodojo_sim_mini.yaml").read_text())["tasks"]
 QUICK_OVERRIDES = {"tasks": "[stack_blocks]", "episodes": "1"}
 SHORTENED = ("run", "compile", "bench")
 README_PORTS = ("19000", "19001")
@@ -197,8 +201,16 @@ def test_readme_names_outputs_and_the_fast_variant_shortens_every_run() -> None:
 
 
 def test_readme_quick_start_runs_in_order_on_one_task(tmp_path: Path) -> None:
+    """Every quick-start command, shortened but for the plain `dojo run`: its reference policy solves every
+    episode of the default suite, which is also CI's check that each of that suite's tasks' experts solves its
+    two episodes (`tests/experts/test_validity.py` checks the other tasks' first seeds)."""
     commands = [_shortened(c) for c in quick_start(README.read_text()) if "./setup.sh" not in c.text]
     _run(commands, tmp_path, _env(tmp_path, this_venv=True), timeout=1500)
+    store = tmp_path / "robodojo" / "outputs" / "robodojo_sim_mini" / "oracle" / "default" / "results.sqlite"
+    with closing(sqlite3.connect(store)) as db:
+        rows = db.execute("SELECT task, success, failure_reason FROM episodes").fetchall()
+    assert len(rows) == 2 * len(DEFAULT_SUITE_TASKS) and {t for t, _, _ in rows} == set(DEFAULT_SUITE_TASKS)
+    assert [r for r in rows if not r[1]] == []
 
 
 @pytest.mark.slow
