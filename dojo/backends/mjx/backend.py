@@ -507,10 +507,9 @@ class MjxBackend(Backend):
         cameras) only for those in `observe` (all when None), rendered per bucket in one call. The state arrays
         are rows of one copy per bucket and call."""
         table = self._slots
-        positions = ids.tolist()
+        positions, buckets, rows = ids.tolist(), table.bucket[ids].tolist(), table.row[ids].tolist()
         observations = StepObservations(
-            [table.plans[s] for s in positions], table.step[ids].tolist(), table.bucket[ids].tolist(),
-            table.row[ids].tolist(),
+            [table.plans[s] for s in positions], table.step[ids].tolist(), buckets, rows,
             {k: {name: np.array(outputs[k][name], np.float32) for name in ROBOT_STATE} for k, _ in table.by_bucket(ids)})
         fetched: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
 
@@ -537,7 +536,7 @@ class MjxBackend(Backend):
                 for at, images in zip(picked.tolist(), observation_images(frames, self.render_config.cameras)):
                     observations.add(at, images)
         if self.privileged:
-            for at, (s, k, r) in enumerate(zip(positions, table.bucket[ids].tolist(), table.row[ids].tolist())):
+            for at, (s, k, r) in enumerate(zip(positions, buckets, rows)):
                 qpos, qvel = state(k)
                 plan = table.plans[s]
                 layout = self._layouts[plan.hash]
