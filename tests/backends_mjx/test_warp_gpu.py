@@ -64,7 +64,7 @@ def test_sized_buffers_do_not_overflow_and_streams_step_the_same_physics(warp_re
     engine.check_overflow()
     for serial in (False, True):
         streams = StreamEngine(buckets, sizes, [[c] for c in ctrl], serial=serial)
-        # the constructor ran one warm-up sub-step on the initial state: start both from there
+        # both start from the members' initial states (the constructor's kernel warm-up puts the state back)
         for _ in range(ticks):
             streams.tick(0)
         streams.synchronize()

@@ -40,7 +40,7 @@ from dojo.backends.mjx.substeps import substeps
 log = logging.getLogger(__name__)
 Tree = Any
 # Per-world state a reset or a non-stepping environment restores; everything else is derived from it by a step.
-_STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
+STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
 
 
 REST_MARGIN = 2
@@ -161,7 +161,7 @@ def _select(mask: jax.Array, new: Tree, old: Tree) -> Tree:
     def pick(name: str) -> jax.Array:
         a, b = getattr(new, name), getattr(old, name)
         return jnp.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
-    return new.replace(**{name: pick(name) for name in _STATE_FIELDS})
+    return new.replace(**{name: pick(name) for name in STATE_FIELDS})
 
 
 class Hooks:

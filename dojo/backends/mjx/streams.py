@@ -20,8 +20,11 @@ physics steps/s concurrently against 320k for the same graphs on one stream (2.7
 the gain is the overlap of buckets, largest where they are small.
 
 Scope. Physics only (the `streams` and `merged_streams` modes of `dojo bench sim`): no resets, predicates or
-observations; the evaluation backend still runs `Engine`. Needs an NVIDIA GPU and warp-lang. A varying field
-MuJoCo Warp cannot batch per world (`dof_M0`) keeps member 0's value and is listed in the figures (`unbatched_fields`).
+observations; the evaluation backend still runs `Engine`. Needs warp-lang; on Warp's CPU device (no streams, no
+graphs) each tick launches the steps one bucket after another, which is how CI checks that this engine steps
+exactly what `Engine` steps (`tests/backends_mjx/test_streams_cpu.py`: bit for bit). A varying field MuJoCo Warp
+cannot batch per world keeps member 0's value and is listed in the figures (`unbatched_fields`); so far that is
+only `dof_M0`, which MJX's model has and MuJoCo Warp's step never reads.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from dojo.backends.mjx.batch import CapacityOverflow, contact_capacity, decode_overflow
+from dojo.backends.mjx.batch import STATE_FIELDS, CapacityOverflow, contact_capacity, decode_overflow
 from dojo.backends.mjx.bucket import Bucket
 from dojo.backends.mjx.capture import collector_held
 
@@ -56,19 +59,34 @@ def world_values(bucket: Bucket, size: int, name: str) -> np.ndarray:
     return np.ascontiguousarray(rows[np.arange(size) % len(rows)], dtype=np.float32)
 
 
+def _control_step(wp: Any, mjw: Any, model: Any, data: Any, source: Any, substeps: int) -> None:
+    """Copy the controls, then `substeps` physics steps: one tick of one bucket."""
+    wp.copy(data.ctrl, source)
+    for _ in range(substeps):
+        mjw.step(model, data)
+
+
 def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, source: Any, substeps: int) -> Any:
-    """One CUDA graph of "copy the controls, then `substeps` steps", captured with Python's garbage collector held
-    back (`capture`: nothing may be freed while a stream captures)."""
+    """One CUDA graph of `_control_step`, captured with Python's garbage collector held back (`capture`: nothing
+    may be freed while a stream captures)."""
     with collector_held(), wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
-        wp.copy(data.ctrl, source)
-        for _ in range(substeps):
-            mjw.step(model, data)
+        _control_step(wp, mjw, model, data, source, substeps)
     return capture.graph
+
+
+def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any) -> None:
+    """One physics step, so that every kernel the graphs will hold is loaded (compiled on a cold cache: a capture
+    cannot load modules), with the state put back afterwards: the first tick starts from the initial state."""
+    kept = {name: wp.clone(getattr(data, name)) for name in STATE_FIELDS}
+    mjw.step(model, data)
+    for name, value in kept.items():
+        wp.copy(getattr(data, name), value)
 
 
 @dataclass
 class _Lane:
-    """One bucket on the device: model, data, stream, and one captured graph per control input."""
+    """One bucket on the device: model, data, stream, and one captured graph per control input (no stream and no
+    graphs on a CPU)."""
 
     bucket: Bucket
     size: int
@@ -85,7 +103,8 @@ class StreamEngine:
 
     `controls[k]` is a sequence of control batches [size_k, nu] for bucket k; `tick(j)` advances every bucket by
     one control step with its j-th batch (mod their number), without waiting; `synchronize()` waits. `serial=True`
-    launches every graph on one stream: the same work in the order `Engine` runs it, for comparison.
+    launches every graph on one stream: the same work in the order `Engine` runs it, for comparison. On Warp's CPU
+    device a tick runs the buckets' steps in turn and returns when they are done.
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
@@ -97,9 +116,10 @@ class StreamEngine:
 
         quiet_warp()
         wp.init()
-        self.wp = wp
+        self.wp, self.mjw = wp, mjw
+        self.on_gpu = wp.get_device().is_cuda
         self.unbatched: dict[str, tuple[str, ...]] = {}
-        shared = wp.Stream() if serial else None
+        shared = wp.Stream() if serial and self.on_gpu else None
         self.lanes: list[_Lane] = []
         for bucket, size, ctrls in zip(buckets, sizes, controls):
             ok, skipped = batchable_fields(bucket.varying)
@@ -116,11 +136,14 @@ class StreamEngine:
             xpos, xmat = bucket.geom_poses()  # fixtures' poses: Warp computes them in make_data only (`Bucket.table`)
             data.geom_xpos.assign(xpos[member].astype(np.float32))
             data.geom_xmat.assign(xmat[member].astype(np.float32))
-            stream = shared or wp.Stream()
             sources = [wp.array(np.asarray(c, np.float32), dtype=float) for c in ctrls]
+            if not self.on_gpu:
+                self.lanes.append(_Lane(bucket, size, model, data, None, [], sources))
+                continue
+            stream = shared or wp.Stream()
             with wp.ScopedStream(stream):
                 wp.copy(data.ctrl, sources[0])
-                mjw.step(model, data)  # loads (compiles on a cold cache) every kernel the graphs will hold
+                _load_kernels(wp, mjw, model, data)
                 graphs = [_capture(wp, mjw, stream, model, data, src, bucket.n_substeps) for src in sources]
             self.lanes.append(_Lane(bucket, size, model, data, stream, graphs, sources))
         self.synchronize()
@@ -128,7 +151,11 @@ class StreamEngine:
     def tick(self, j: int = 0) -> None:
         """Launch one control step of every bucket (its j-th control batch); returns before the GPU finishes."""
         for lane in self.lanes:
-            self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
+            if lane.graphs:
+                self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
+            else:
+                _control_step(self.wp, self.mjw, lane.model, lane.data, lane.sources[j % len(lane.sources)],
+                              lane.bucket.n_substeps)
 
     def synchronize(self) -> None:
         """Wait for every stream (ticks return as soon as the graphs are launched)."""

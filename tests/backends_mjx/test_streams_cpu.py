@@ -1,0 +1,95 @@
+"""The stream engine (`mjx.streams`) on Warp's CPU device: it steps exactly what the jitted tick (`Engine`) steps,
+bit for bit, so what the GPU gains from its streams is speed alone; its kernel warm-up leaves the state as it was;
+and the one varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from conftest import toy_plan
+
+from dojo.backends.mjx.batch import Engine
+from dojo.backends.mjx.bucket import make_buckets
+from dojo.backends.mjx.cache import warp_installed
+
+B = 4
+TICKS = 4
+
+
+@pytest.fixture(scope="module")
+def buckets():
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
+    plans = ([toy_plan(seed=s) for s in range(2)]
+             + [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate([("ball",), ("ball", "box")])])
+    found = make_buckets(plans)
+    assert len(found) == 2 and any(b.varying for b in found)
+    return found
+
+
+def _controls(buckets) -> list[np.ndarray]:
+    return [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
+
+
+def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each bucket's qpos and qvel after TICKS control steps of the jitted tick, from its members' initial states."""
+    engine = Engine(buckets, [B] * len(buckets), "warp")
+    members = [np.arange(B) % len(b.members) for b in buckets]
+    on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
+    ctrl = _controls(buckets)
+    engine.tick(members, on, off, ctrl)  # resets only: every environment at its member's initial state
+    for _ in range(TICKS):
+        engine.tick(members, off, on, ctrl)
+    return [(np.asarray(d.qpos), np.asarray(d.qvel)) for d in engine.data]
+
+
+def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets) -> None:
+    from dojo.backends.mjx.streams import StreamEngine
+
+    expected = _engine_state(buckets)
+    streams = StreamEngine(buckets, [B] * len(buckets), [[c] for c in _controls(buckets)])
+    assert not streams.on_gpu and all(not lane.graphs for lane in streams.lanes)
+    for _ in range(TICKS):
+        streams.tick(0)
+    streams.synchronize()
+    streams.check_overflow()
+    for lane, (qpos, qvel) in zip(streams.lanes, expected):
+        np.testing.assert_array_equal(lane.data.qpos.numpy(), qpos, err_msg=lane.bucket.key)
+        np.testing.assert_array_equal(lane.data.qvel.numpy(), qvel, err_msg=lane.bucket.key)
+        assert np.any(qpos != np.stack([m.qpos for m in lane.bucket.members])[np.arange(B) % len(lane.bucket.members)])
+
+
+def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
+    """On a GPU the engine steps once before it captures its graphs (a capture cannot load modules); the first
+    tick must still start from the initial state."""
+    import warp as wp
+
+    from dojo.backends.mjx.batch import STATE_FIELDS
+    from dojo.backends.mjx.streams import StreamEngine, _load_kernels
+
+    plain = StreamEngine(buckets, [B] * len(buckets), [[c] for c in _controls(buckets)])
+    warmed = StreamEngine(buckets, [B] * len(buckets), [[c] for c in _controls(buckets)])
+    for lane in warmed.lanes:
+        wp.copy(lane.data.ctrl, lane.sources[0])  # as the engine does before it loads the kernels
+        before = {name: getattr(lane.data, name).numpy().copy() for name in STATE_FIELDS}
+        _load_kernels(wp, warmed.mjw, lane.model, lane.data)
+        for name, value in before.items():
+            np.testing.assert_array_equal(getattr(lane.data, name).numpy(), value, err_msg=name)
+    for engine in (plain, warmed):
+        engine.tick(0)
+    for a, b in zip(plain.lanes, warmed.lanes):
+        np.testing.assert_array_equal(a.data.qpos.numpy(), b.data.qpos.numpy())
+        np.testing.assert_array_equal(a.data.qvel.numpy(), b.data.qvel.numpy())
+
+
+def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -> None:
+    from mujoco.mjx.third_party.mujoco_warp._src import types as mjw_types
+
+    from dojo.backends.mjx.streams import batchable_fields
+
+    warp_fields = {f.name for f in dataclasses.fields(mjw_types.Model)}
+    for bucket in buckets:
+        _, unbatched = batchable_fields(bucket.varying)
+        assert not set(unbatched) & warp_fields, (bucket.key, unbatched)
