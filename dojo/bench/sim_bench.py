@@ -111,16 +111,18 @@ def _controls(bucket: Bucket, size: int) -> tuple[jax.Array, jax.Array]:
 
 
 def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
-         placement: Placement | None = None, graph_mode: object | None = None) -> dict[str, Any]:
+         placement: Placement | None = None, graph_mode: object | None = None, streams: bool = False
+         ) -> dict[str, Any]:
     """Build one engine over `buckets` (its batches split over `placement`'s devices, its Warp calls captured as
-    `graph_mode` says), compile, warm up, and time `steps` ticks."""
+    `graph_mode` says, its physics on streams with `streams`: `backend.streams`), compile, warm up, and time
+    `steps` ticks."""
     import jax
     import jax.numpy as jnp
 
     from dojo.backends.mjx.batch import Engine
 
     start = time.perf_counter()
-    engine = Engine(buckets, sizes, impl, placement=placement, graph_mode=graph_mode)
+    engine = Engine(buckets, sizes, impl, placement=placement, graph_mode=graph_mode, streams=streams)
     members = [jnp.asarray(np.arange(n) % len(b.members), jnp.int32) for b, n in zip(buckets, sizes)]
     ones = [jnp.ones(n, bool) for n in sizes]
     zeros = [jnp.zeros(n, bool) for n in sizes]
@@ -259,7 +261,7 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
+    CUDA graph capture of Warp calls; `streams`, the heterogeneous engine's physics on CUDA streams), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
     `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes` (subset of MJX_MODES;
     backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
     `cache_dir` (persistent compilation cache).
@@ -312,13 +314,14 @@ def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:
             **{k: cpu[k] for k in ("reset_ms_mean", "reset_ms_max", "load_average_1min")}}
 
 
-def jax_memory_settings(modes: Sequence[str]) -> dict[str, str]:
+def jax_memory_settings(modes: Sequence[str], engine_streams: bool = False) -> dict[str, str]:
     """JAX's share of the GPU beside the stream engines, which allocate through Warp: JAX takes 75% of the GPU
     when it starts, by default. With stream modes alone JAX holds a few control arrays and reserves nothing up
     front (the 24-task mix merged into 13 buckets at 16,384 environments ran out of memory in its second engine on
-    an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets half."""
+    an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets half, as it does when the JAX engine's
+    own physics runs on streams (`engine_streams`)."""
     if not STREAM_MODES & set(modes):
-        return {}
+        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"} if engine_streams else {}
     if set(modes) <= STREAM_MODES:
         return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     return {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
@@ -335,7 +338,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     on_streams = bool(STREAM_MODES & set(modes))
-    for name, value in jax_memory_settings(modes).items():  # before JAX starts on the GPU
+    engine_streams = bool(backend.get("streams", False))
+    for name, value in jax_memory_settings(modes, engine_streams).items():  # before JAX starts on the GPU
         os.environ.setdefault(name, value)
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
@@ -362,12 +366,12 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "buckets": len(buckets),
         "bucket_sizes": sizes, "device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
         "jax": jax.__version__, "mujoco": mujoco.__version__, "mujoco_mjx": version("mujoco-mjx"), "counts": COUNTS,
-        "graph_mode": graph_mode_name(graphs),
+        "graph_mode": graph_mode_name(graphs), "engine_streams": engine_streams,
         "dof_quantum": quantum, "bucket_nv": [int(b.model.nv) for b in buckets],
     }
     out["devices"] = widest.count
     if "heterogeneous" in modes:
-        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs) for n in counts}
+        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs, engine_streams) for n in counts}
         out["heterogeneous"] = _rates([runs[counts[-1]]])
         if len(counts) > 1:
             out["by_devices"] = _by_devices(runs)

@@ -157,3 +157,4 @@ def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run():
     assert jax_memory_settings(["heterogeneous"]) == {}
     assert jax_memory_settings(["streams", "merged_streams"]) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     assert jax_memory_settings(["heterogeneous", "streams"]) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
+    assert jax_memory_settings(["heterogeneous"], engine_streams=True) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}

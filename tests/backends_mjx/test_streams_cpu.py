@@ -1,6 +1,7 @@
 """The stream engine (`mjx.streams`) on Warp's CPU device: it steps exactly what the jitted tick (`Engine`) steps,
-bit for bit, so what the GPU gains from its streams is speed alone; its kernel warm-up leaves the state as it was;
-and the one varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
+bit for bit, so what the GPU gains from its streams is speed alone; so does `Engine(streams=True)`, whose physics
+runs on it between two jitted halves, refills included; its kernel warm-up leaves the state as it was; and the one
+varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ from dojo.backends.mjx.cache import warp_installed
 
 B = 4
 TICKS = 4
+WALLS = (0.25, -0.15, 0.045)
+"""A wall welded to the world beside the block, at a place of each member's own: pressing on it at 0.045, where a
+refill moves environment 1 (5 mm into the block; its pose is the member's only if the engine loads it: Warp never recomputes it)."""
 
 
 @pytest.fixture(scope="module")
@@ -23,9 +27,10 @@ def buckets():
     if not warp_installed():
         pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
     plans = ([toy_plan(seed=s) for s in range(2)]
-             + [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate([("ball",), ("ball", "box")])])
+             + [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate([("ball",), ("ball", "box")])]
+             + [toy_plan(task="walled", seed=s, fixture_y=y) for s, y in enumerate(WALLS)])
     found = make_buckets(plans)
-    assert len(found) == 2 and any(b.varying for b in found)
+    assert len(found) == 3 and any("body_pos" in b.varying for b in found)
     return found
 
 
@@ -33,16 +38,27 @@ def _controls(buckets) -> list[np.ndarray]:
     return [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
 
 
-def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each bucket's qpos and qvel after TICKS control steps of the jitted tick, from its members' initial states."""
-    engine = Engine(buckets, [B] * len(buckets), "warp")
+def _run_engine(buckets, streams: bool = False, refill: bool = False) -> Engine:
+    """TICKS control steps from the members' initial states; with `refill`, halfway through, environment 1 of
+    each bucket starts another member's episode while environment 2 pauses."""
+    engine = Engine(buckets, [B] * len(buckets), "warp", streams=streams)
     members = [np.arange(B) % len(b.members) for b in buckets]
     on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
     ctrl = _controls(buckets)
     engine.tick(members, on, off, ctrl)  # resets only: every environment at its member's initial state
-    for _ in range(TICKS):
-        engine.tick(members, off, on, ctrl)
-    return [(np.asarray(d.qpos), np.asarray(d.qvel)) for d in engine.data]
+    for k in range(TICKS):
+        if refill and k == TICKS // 2:
+            members = [(m + np.array([0, 1, 0, 0])) % len(b.members) for m, b in zip(members, buckets)]
+            engine.tick(members, [np.array([False, True, False, False])] * len(buckets),
+                        [np.array([True, False, False, True])] * len(buckets), ctrl)
+        else:
+            engine.tick(members, off, on, ctrl)
+    return engine
+
+
+def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each bucket's qpos and qvel after TICKS control steps of the jitted tick, from its members' initial states."""
+    return [(np.asarray(d.qpos), np.asarray(d.qvel)) for d in _run_engine(buckets).data]
 
 
 def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets) -> None:
@@ -59,6 +75,19 @@ def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets)
         np.testing.assert_array_equal(lane.data.qpos.numpy(), qpos, err_msg=lane.bucket.key)
         np.testing.assert_array_equal(lane.data.qvel.numpy(), qvel, err_msg=lane.bucket.key)
         assert np.any(qpos != np.stack([m.qpos for m in lane.bucket.members])[np.arange(B) % len(lane.bucket.members)])
+
+
+def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_tick(buckets) -> None:
+    plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
+    for a, b in zip(plain.data, split.data):
+        for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
+            np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), err_msg=name)
+    assert split.compilations() == 1 and not split.overflows()
+
+
+def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
+    with pytest.raises(ValueError, match="impl=warp and devices=1"):
+        Engine(buckets, [B] * len(buckets), "jax", streams=True)
 
 
 def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:

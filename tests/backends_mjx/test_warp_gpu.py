@@ -149,3 +149,27 @@ def test_graph_modes_step_what_the_default_steps_and_allow_a_second_batch_size(w
     wider = final_qpos([2 * B] * len(buckets), graph_mode(mode, "warp"))
     for a, b in zip(default, wider):
         np.testing.assert_allclose(a, b[:B], atol=1e-5)  # world i runs member i mod n at either size
+
+
+@pytest.mark.parametrize("mode", [None, "warp_staged"])
+def test_an_engine_with_its_physics_on_streams_steps_what_the_jitted_tick_steps(warp_ready, buckets, mode):
+    """`backend.streams`: each bucket's sub-steps on its own CUDA stream between the tick's two jitted halves, the
+    same physics as inside the one jitted tick (bit for bit on Warp's CPU device: tests/backends_mjx/
+    test_streams_cpu.py), under MJX's default capture and the staged one `dojo run` uses."""
+    from dojo.backends.mjx.batch import Engine
+    from dojo.backends.mjx.cache import graph_mode
+
+    def final_qpos(streams):
+        engine = Engine(buckets, [B] * len(buckets), "warp", graph_mode=graph_mode(mode, "warp"), streams=streams)
+        members = [np.arange(B) % len(b.members) for b in buckets]
+        on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
+        ctrl = [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
+        engine.tick(members, on, off, ctrl)
+        for _ in range(4):
+            engine.tick(members, off, on, ctrl)
+        engine.check_overflow()
+        assert engine.compilations() == 1
+        return [np.asarray(d.qpos) for d in engine.data]
+
+    for a, b in zip(final_qpos(False), final_qpos(True)):
+        np.testing.assert_allclose(a, b, atol=1e-5)

@@ -10,7 +10,8 @@
 - `cache`: the persistent compilation cache and the choice of MJX implementation (`jax` or `warp`);
 - `features`: which of a plan's `requires` this backend cannot run, and why;
 - `sharding`: `Placement`, every bucket's batch split over the local devices (one process, several GPUs);
-- `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode).
+- `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode),
+  and `StreamPhysics`, the same for `Engine`'s ticks (`backend.streams`).
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
     `merge_growth` (how much larger than its largest plan a padded or merged model may be; null:
-    `merge_groups.GROWTH`) and `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
-    MJX's own default).
+    `merge_groups.GROWTH`), `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
+    MJX's own default) and `streams` (warp, one GPU: each bucket's physics on its own CUDA stream).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     from pathlib import Path
@@ -63,7 +64,8 @@ def make(options: BackendOptions) -> MjxBackend:
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
                          merge=bool(options.settings.get("merge", False)),
                          merge_growth=merge_growth(options.settings.get("merge_growth")),
-                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes)
+                         graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
+                         streams=bool(options.settings.get("streams", False)))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

@@ -297,7 +297,8 @@ class MjxBackend(Backend):
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
                  merge: bool = False, merge_growth: float = GROWTH,
-                 graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None) -> None:
+                 graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None,
+                 streams: bool = False) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
@@ -311,6 +312,8 @@ class MjxBackend(Backend):
         same bound holds where one task's plans are padded together (`merge_groups.padding_groups`), merged or not.
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
         None: MJX's own default).
+        `streams`: under `warp` on one GPU, every bucket's physics on its own CUDA stream between two jitted halves
+        of the tick (`streams.StreamPhysics`) instead of one after another inside it.
         `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
         when one of them is among these, and `step` refuses the others."""
         self.action_modes = tuple(action_modes) if action_modes is not None else MODES
@@ -324,6 +327,7 @@ class MjxBackend(Backend):
         self.impl = choose_impl(impl)
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
+        self.streams = bool(streams)
         log.info("mjx backend: %s%s", describe_impl(self.impl),
                  f", CUDA graphs: {graph_mode_name(self.graph_mode)}" if self.graph_mode is not None else "")
         if self.impl == "jax" and jax.default_backend() == "cpu" and warp_installed():
@@ -403,7 +407,7 @@ class MjxBackend(Backend):
         gc.collect()         # tick refers back to it, so only the collector frees it
         start = time.perf_counter()
         self._engine = Engine(self._buckets, capacity, self.impl, hooks, example,
-                              placement=self.placement, graph_mode=self.graph_mode)
+                              placement=self.placement, graph_mode=self.graph_mode, streams=self.streams)
         if self.render_config is not None:
             self._renderers = [BucketCameras(arr, self.render_config, self._image_buffers) if self.impl == "warp" else
                                CpuRenderer([m.model for m in arr.bucket.members], self.render_config)

@@ -196,13 +196,19 @@ class Hooks:
         return extra, ()
 
 
-def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax.Array], data: Tree, extra: Tree,
-                 member: jax.Array, reset: jax.Array, stepping: jax.Array, inputs: Tree, steps: jax.Array
-                 ) -> tuple[Tree, Tree, Tree]:
-    """One control step of one bucket (traced inside `Engine.tick`), on the rows of the batch this device holds."""
-    arr = dataclasses.replace(arr, size=member.shape[0])
+def _gathered(arr: BucketArrays, mx: Tree, table: dict[str, jax.Array], member: jax.Array
+              ) -> tuple[BucketArrays, Tree, dict[str, jax.Array]]:
+    """The bucket at this device's batch size, the model each environment simulates (its member's rows of the
+    varying fields in the shared model) and those rows."""
     rows = {name: table[name][member] for name in arr.bucket.varying}
-    m = mx.tree_replace(rows)
+    return dataclasses.replace(arr, size=member.shape[0]), mx.tree_replace(rows), rows
+
+
+def _before_physics(arr: BucketArrays, hooks: Hooks, m: Tree, table: dict[str, jax.Array], data: Tree,
+                    extra: Tree, member: jax.Array, reset: jax.Array, stepping: jax.Array, inputs: Tree
+                    ) -> tuple[Tree, Tree, Tree, Tree]:
+    """Resets, the hooks' actions and controls: (the data after the resets, the same with the stepping envs'
+    controls written, the extra state, the controls' aux outputs)."""
     init = data.replace(qpos=table["qpos"][member].astype(data.qpos.dtype),
                         qvel=table["qvel"][member].astype(data.qvel.dtype),
                         ctrl=table["ctrl"][member].astype(data.ctrl.dtype),
@@ -216,11 +222,27 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     inputs, extra = hooks.act(arr, extra, member, inputs, stepping)
     ctrl, aux = hooks.control(arr, m, data, inputs)
     driven = data.replace(ctrl=jnp.where(stepping[:, None], ctrl.astype(data.ctrl.dtype), data.ctrl))
-    stepped = substeps(mx.impl.value, arr.bucket.n_substeps, arr.in_axes)(m, driven)
+    return data, driven, extra, aux
+
+
+def _after_physics(arr: BucketArrays, hooks: Hooks, m: Tree, data: Tree, stepped: Tree, extra: Tree,
+                   member: jax.Array, reset: jax.Array, stepping: jax.Array, aux: Tree, steps: jax.Array
+                   ) -> tuple[Tree, Tree, Tree]:
+    """The stepping envs' new state, brought up to date (`Hooks.refresh`) and observed: (data, extra, outputs)."""
     data = _select(stepping, stepped, data)
     data = jax.vmap(hooks.refresh, in_axes=(arr.in_axes, 0))(m, data)
     extra, outputs = hooks.observe(arr, m, data, extra, member, reset, stepping, aux, steps)
     return data, extra, outputs
+
+
+def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax.Array], data: Tree, extra: Tree,
+                 member: jax.Array, reset: jax.Array, stepping: jax.Array, inputs: Tree, steps: jax.Array
+                 ) -> tuple[Tree, Tree, Tree]:
+    """One control step of one bucket (traced inside `Engine.tick`), on the rows of the batch this device holds."""
+    arr, m, _ = _gathered(arr, mx, table, member)
+    data, driven, extra, aux = _before_physics(arr, hooks, m, table, data, extra, member, reset, stepping, inputs)
+    stepped = substeps(mx.impl.value, arr.bucket.n_substeps, arr.in_axes)(m, driven)
+    return _after_physics(arr, hooks, m, data, stepped, extra, member, reset, stepping, aux, steps)
 
 
 def _stable(tree: Tree, like: Tree, placement: Placement) -> Tree:
@@ -246,11 +268,15 @@ class Engine:
     (`sharding`), so each size must be a multiple of their count (`Placement.padded`). `graph_mode`: MJX's CUDA
     graph capture of Warp calls (`cache.graph_mode`; None is MJX's default). Ticks that may capture run settled
     (`capture.run_settled`): nothing is freed on the host until they finish.
+
+    `streams` (warp, one device): the physics runs between two jitted halves of the tick, every bucket on its own
+    CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
+    when its outputs are computed.
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
                  example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
-                 graph_mode: object | None = None):
+                 graph_mode: object | None = None, streams: bool = False):
         self.impl = impl
         self.hooks = hooks or Hooks()
         self.placement = placement or Placement.over(None, impl)
@@ -259,6 +285,18 @@ class Engine:
         p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
         self._tick = jax.jit(p.per_device(self._tick_all, 2, 7), donate_argnums=(2, 3),
                              in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)
+        self._physics = None
+        if streams:
+            if impl != "warp" or p.count != 1:
+                raise ValueError("backend.streams runs MuJoCo Warp on one device: it needs impl=warp and devices=1")
+            from dojo.backends.mjx.streams import StreamPhysics
+
+            self._physics = StreamPhysics(buckets, sizes)
+            # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
+            self._before = jax.jit(self._before_all, donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 6),
+                                   out_shardings=p.batched)
+            self._after = jax.jit(self._after_all, donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 8),
+                                  out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
@@ -288,15 +326,62 @@ class Engine:
                      for a, *args in zip(self.arrays, mxs, tables, data, extra, members, resets, stepping, inputs,
                                          steps))
 
+    def _before_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
+                    stepping: tuple, inputs: tuple) -> tuple:
+        """The tick up to the physics (`streams`): per bucket the data after resets, the extra state, the controls'
+        aux outputs, what the physics loads (`streams.LOADED_FIELDS` and the controls) and the environments'
+        rows of the varying model fields."""
+        from dojo.backends.mjx.streams import LOADED_FIELDS
+
+        out = []
+        for a, mx, table, d, e, member, reset, step, given in zip(self.arrays, mxs, tables, data, extra, members,
+                                                                  resets, stepping, inputs):
+            a, m, rows = _gathered(a, mx, table, member)
+            d, driven, e, aux = _before_physics(a, self.hooks, m, table, d, e, member, reset, step, given)
+            loaded = {name: getattr(driven, name) for name in (*LOADED_FIELDS, "ctrl")}
+            out.append((d, e, aux, loaded, rows))
+        return tuple(out)
+
+    def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
+                   stepping: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
+        """The tick after the physics (`streams`): each bucket's stepped state (`states`) brought up to date and
+        observed, as `_bucket_tick` does after its own physics."""
+        out = []
+        for a, mx, table, d, e, member, reset, step, x, k, state in zip(self.arrays, mxs, tables, data, extra,
+                                                                         members, resets, stepping, aux, steps,
+                                                                         states):
+            a, m, _ = _gathered(a, mx, table, member)
+            stepped = d.replace(**{name: value.astype(getattr(d, name).dtype).reshape(getattr(d, name).shape)
+                                   for name, value in state.items()})
+            out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
+        return tuple(out)
+
+    def _split_tick(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
+                    stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
+        """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for."""
+        call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else (lambda f, *args: f(*args))
+        before = jax.block_until_ready(call(self._before, mxs, tables, data, extra, members, resets, stepping,
+                                            inputs))
+        states = self._physics.step([b[3] for b in before], [b[4] for b in before])
+        return jax.block_until_ready(call(self._after, mxs, tables, tuple(b[0] for b in before),
+                                          tuple(b[1] for b in before), members, resets, stepping,
+                                          tuple(b[2] for b in before), steps, tuple(states)))
+
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
-        """Advance every bucket by one control step (asynchronously: nothing waits for the device)."""
+        """Advance every bucket by one control step (asynchronously, but for `streams`: nothing waits for the
+        device)."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
         args = (self._models(), self._tables(), self.data, self.extra,
                 tuple(jnp.asarray(m, jnp.int32) for m in members),
                 tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
                 tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
-        out = run_settled(self._tick, *args) if may_capture(self.impl, self._graphs, self._ticks) else self._tick(*args)
+        if self._physics is not None:
+            out = self._split_tick(*args)
+        elif may_capture(self.impl, self._graphs, self._ticks):
+            out = run_settled(self._tick, *args)
+        else:
+            out = self._tick(*args)
         self._ticks += 1
         self.data = tuple(o[0] for o in out)
         self.extra = tuple(o[1] for o in out)
@@ -315,6 +400,10 @@ class Engine:
             flags = decode_overflow(jax.device_get(bits)) if bits is not None else {}
             if flags:
                 found[arr.bucket.key] = flags
+        for key, flags in (self._physics.engine.overflows() if self._physics is not None else {}).items():
+            merged = found.setdefault(key, {})
+            for what, n in flags.items():
+                merged[what] = max(n, merged.get(what, 0))
         return found
 
     def check_overflow(self) -> None:
@@ -330,5 +419,8 @@ class Engine:
                                    "dojo/backends/mjx/batch.py or report the scene.")
 
     def compilations(self) -> int:
-        """How many programs the tick has compiled (1 in a healthy run, whatever the refills)."""
+        """How many programs the tick has compiled (1 in a healthy run, whatever the refills; with `streams`, the
+        most either half has)."""
+        if self._physics is not None:
+            return max(self._before._cache_size(), self._after._cache_size())
         return self._tick._cache_size()

@@ -17,10 +17,14 @@ sized like `Engine`'s (`contact_capacity`) and overflow is checked the same way 
 Measured (same H100, same day, `modes=[heterogeneous,homogeneous,streams]`): the mix at 4,096 envs ran 890k
 physics steps/s concurrently against 320k for the same graphs on one stream (2.78x) and 314k for `Engine`; at
 16,384, 1.49M against 837k (1.78x) and 823k. One bucket alone gains nothing (`stack_blocks`: 3.90M either way):
-the gain is the overlap of buckets, largest where they are small.
+the gain is the overlap of buckets, largest where they are small. Those figures were taken before the lanes used
+the plans' solver tolerance (MuJoCo Warp's `put_model` raises it from 1e-8 to 1e-6, which MJX, so `Engine`, does
+not): concurrent against serial compares like with like, but against `Engine` part of the gap may have been
+fewer solver iterations. Not yet measured again on a GPU.
 
-Scope. Physics only (the `streams` and `merged_streams` modes of `dojo bench sim`): no resets, predicates or
-observations; the evaluation backend still runs `Engine`. Needs warp-lang; on Warp's CPU device (no streams, no
+Scope. `StreamEngine` is physics only (the `streams` and `merged_streams` modes of `dojo bench sim`): no resets,
+predicates or observations. `StreamPhysics` puts it under `Engine` (`backend.streams`): the jitted tick's resets,
+actions and observations around the lanes' physics. Needs warp-lang; on Warp's CPU device (no streams, no
 graphs) each tick launches the steps one bucket after another, which is how CI checks that this engine steps
 exactly what `Engine` steps (`tests/backends_mjx/test_streams_cpu.py`: bit for bit). A varying field MuJoCo Warp
 cannot batch per world keeps member 0's value and is listed in the figures (`unbatched_fields`); so far that is
@@ -126,6 +130,9 @@ class StreamEngine:
             if skipped:
                 self.unbatched[bucket.key] = skipped
             model = mjw.put_model(bucket.model, batch_sizes={name: size for name in ok})
+            # MuJoCo Warp raises the solver's tolerance to 1e-6 for float32 (fewer iterations); MJX, so `Engine`,
+            # keeps the plan's own (1e-8 by default): the same physics needs the same tolerance
+            model.opt.tolerance.fill_(float(bucket.model.opt.tolerance))
             for name in ok:
                 getattr(model, name).assign(world_values(bucket, size, name))
             contacts, rows = contact_capacity(bucket)
@@ -207,3 +214,53 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
         out["concurrent_over_serial"] = out["concurrent"]["interactions_per_s"] / out["serial"]["interactions_per_s"]
     out.update(out.pop("concurrent"))
     return out
+
+
+LOADED_FIELDS = tuple(name for name in STATE_FIELDS if name != "ctrl") + ("mocap_pos", "mocap_quat", "geom_xpos",
+                                                                         "geom_xmat")
+"""What a tick's physics takes from the jitted half before it, besides the controls: the state, the mocap bodies'
+poses and the geom poses (a reset sets fixtures' poses, which MuJoCo Warp's step never recomputes)."""
+
+
+class StreamPhysics:
+    """`Engine`'s physics on a `StreamEngine` (`backend.streams`): every bucket's sub-steps on its own CUDA stream.
+
+    Why. Inside one jitted program XLA runs the buckets' Warp calls one after another, even when each is put on
+    a stream of its own (README: XLA scheduled every call's end right after its start), while `StreamEngine`
+    overlaps them (3.7x on the 24-task mix at 4,096 environments, H200). So a tick becomes: a jitted half that
+    resets, acts and writes the controls (`batch._before_physics`); this, which loads each bucket's state, its
+    environments' varying model fields and controls into its lane and launches the lanes' graphs; and a jitted
+    half that reads the new state back (DLPack views, no copy), brings the derived quantities up to date and
+    observes (`batch._after_physics`). The host waits for the first half before it launches the lanes, and for
+    the lanes before the second half, so each side reads only finished buffers.
+    """
+
+    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int]) -> None:
+        zeros = [[np.zeros((n, b.model.nu), np.float32)] for b, n in zip(buckets, sizes)]
+        self.engine = StreamEngine(buckets, sizes, zeros)
+        self.batched = [batchable_fields(b.varying)[0] for b in buckets]
+
+    def step(self, inputs: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+        """One control step of every bucket from `inputs[k]` (the controls and `LOADED_FIELDS`, JAX arrays) with
+        each environment's varying model fields `rows[k]`; returns each bucket's `STATE_FIELDS` as JAX arrays
+        that view the lanes' buffers (valid until the next step)."""
+        from contextlib import nullcontext
+
+        wp = self.engine.wp
+        for lane, given, row, names in zip(self.engine.lanes, inputs, rows, self.batched):
+            with wp.ScopedStream(lane.stream) if lane.stream is not None else nullcontext():
+                _load(wp, lane.sources[0], given["ctrl"])
+                for name in LOADED_FIELDS:
+                    _load(wp, getattr(lane.data, name), given[name])
+                for name in names:
+                    _load(wp, getattr(lane.model, name), row[name])
+        self.engine.tick(0)
+        self.engine.synchronize()
+        return [{name: wp.to_jax(getattr(lane.data, name)) for name in STATE_FIELDS} for lane in self.engine.lanes]
+
+
+def _load(wp: Any, dest: Any, value: Any) -> None:
+    """Copy JAX array `value` into Warp array `dest` (same number of elements; viewed without a copy first)."""
+    if dest.size == 0:
+        return
+    wp.copy(dest, wp.from_jax(value.reshape(dest.shape + getattr(dest.dtype, "_shape_", ())), dtype=dest.dtype))
