@@ -261,8 +261,9 @@ def bench_sim(cfg: dict[str, Any]) -> dict[str, Any]:
     plans per task are compiled), `episodes`, `backend: {name, impl, devices}` (name `mjx` or `mujoco`; impl `auto`,
     `jax` or `warp`; devices a count, `all`, or a list of counts such as [1,4], each measured on the heterogeneous
     mix in this one run and reported under `by_devices`, batches padded for the most devices; `graph_mode`, MJX's
-    CUDA graph capture of Warp calls; `streams`, the heterogeneous engine's physics on CUDA streams), `dof_quantum` (every bucket's DoFs rounded up to a multiple of it,
-    `dof_rounding`: fewer Warp kernels to compile, larger models; 1: off), `modes` (subset of MJX_MODES;
+    CUDA graph capture of Warp calls; `streams`, the heterogeneous engine's physics on CUDA streams),
+    `dof_quantum` (every bucket's DoFs rounded up to a multiple of it, `dof_rounding`: fewer Warp kernels to
+    compile, larger models; 1: off), `modes` (subset of MJX_MODES;
     backend=mujoco is `cpu` alone), `cpu_envs`, `cpu_steps` (the size of the CPU baseline of an mjx measurement),
     `cache_dir` (persistent compilation cache).
     """

@@ -18,8 +18,9 @@ from dojo.backends.mjx.cache import warp_installed
 B = 4
 TICKS = 4
 WALLS = (0.25, -0.15, 0.045)
-"""A wall welded to the world beside the block, at a place of each member's own: pressing on it at 0.045, where a
-refill moves environment 1 (5 mm into the block; its pose is the member's only if the engine loads it: Warp never recomputes it)."""
+"""A wall welded to the world beside the block, at a place of each member's own; at 0.045, where a refill moves
+environment 1, it presses 5 mm into the block. Its pose is the member's only if the engine loads it: MuJoCo Warp
+never recomputes it."""
 
 
 @pytest.fixture(scope="module")

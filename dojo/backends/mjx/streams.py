@@ -227,12 +227,12 @@ class StreamPhysics:
 
     Why. Inside one jitted program XLA runs the buckets' Warp calls one after another, even when each is put on
     a stream of its own (README: XLA scheduled every call's end right after its start), while `StreamEngine`
-    overlaps them (3.7x on the 24-task mix at 4,096 environments, H200). So a tick becomes: a jitted half that
-    resets, acts and writes the controls (`batch._before_physics`); this, which loads each bucket's state, its
-    environments' varying model fields and controls into its lane and launches the lanes' graphs; and a jitted
-    half that reads the new state back (DLPack views, no copy), brings the derived quantities up to date and
-    observes (`batch._after_physics`). The host waits for the first half before it launches the lanes, and for
-    the lanes before the second half, so each side reads only finished buffers.
+    overlaps them (3.7x the same graphs on one stream: the 24-task mix at 4,096 environments, H200). So a tick
+    becomes: a jitted half that resets, acts and writes the controls (`batch._before_physics`); this, which loads
+    each bucket's state, its environments' varying model fields and controls into its lane and launches the
+    lanes' graphs; and a jitted half that reads the new state back (DLPack views, no copy), brings the derived
+    quantities up to date and observes (`batch._after_physics`). The host waits for the first half before it
+    launches the lanes, and for the lanes before the second half, so each side reads only finished buffers.
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int]) -> None:
