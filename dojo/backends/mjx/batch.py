@@ -274,6 +274,9 @@ class Engine:
     when its outputs are computed.
     """
 
+    _physics: Any = None
+    """`streams.StreamPhysics` with `streams`; None: the physics runs inside the jitted tick."""
+
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
                  example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
                  graph_mode: object | None = None, streams: bool = False):
@@ -285,7 +288,6 @@ class Engine:
         p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
         self._tick = jax.jit(p.per_device(self._tick_all, 2, 7), donate_argnums=(2, 3),
                              in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)
-        self._physics = None
         if streams:
             if impl != "warp" or p.count != 1:
                 raise ValueError("backend.streams runs MuJoCo Warp on one device: it needs impl=warp and devices=1")
