@@ -321,11 +321,13 @@ def jax_memory_settings(modes: Sequence[str], engine_streams: bool = False) -> d
     front (the 24-task mix merged into 13 buckets at 16,384 environments ran out of memory in its second engine on
     an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets half, as it does when the JAX engine's
     own physics runs on streams (`engine_streams`)."""
+    from dojo.backends.mjx import STREAMS_JAX_MEMORY
+
     if not STREAM_MODES & set(modes):
-        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"} if engine_streams else {}
+        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY} if engine_streams else {}
     if set(modes) <= STREAM_MODES:
         return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
+    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY}
 
 
 def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:
@@ -345,6 +347,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
     graphs = graph_mode(backend.get("graph_mode"), impl)
+    if engine_streams and impl != "warp":
+        raise ValueError("backend.streams runs the engine's physics on MuJoCo Warp: it needs backend.impl=warp")
     if on_streams and impl != "warp":
         raise ValueError("bench sim modes 'streams' and 'merged_streams' run MuJoCo Warp: they need "
                          "backend.impl=warp on an NVIDIA GPU")

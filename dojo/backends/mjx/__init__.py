@@ -33,6 +33,10 @@ with contextlib.redirect_stdout(io.StringIO()) as _printed:
 if _printed.getvalue().strip():
     logging.getLogger(__name__).debug("mujoco.mjx: %s", _printed.getvalue().strip())
 
+STREAMS_JAX_MEMORY = "0.5"
+"""JAX's share of the GPU (`XLA_PYTHON_CLIENT_MEM_FRACTION`, read when JAX starts on it) with `backend.streams`,
+whose lanes hold a second copy of every bucket's data through Warp's allocator."""
+
 RUNS_POLICY_RULES = True
 """`MjxBackend.attach_rule`: a policy's joint-mode rule runs inside the tick (`dojo.backends.registry`)."""
 
@@ -45,8 +49,11 @@ def make(options: BackendOptions) -> MjxBackend:
     MJX's own default) and `streams` (warp, one GPU: each bucket's physics on its own CUDA stream).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
+    import os
     from pathlib import Path
 
+    if options.settings.get("streams"):  # the lanes allocate through Warp: JAX takes half the GPU, not 3/4
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", STREAMS_JAX_MEMORY)
     import jax
 
     from dojo.compiler.plan import Plan

@@ -261,8 +261,8 @@ class Engine:
     `tick(members, resets, stepping, inputs, steps)` takes, per bucket, int32 member indices [B], reset and
     stepping flags [B], the hooks' inputs (controls [B, nu] by default) and the control step each env completes
     (int32 [B], for predicates); it keeps the new state in `self.data` / `self.extra` and returns the hooks'
-    outputs per bucket (device arrays, nothing waits for the device). Envs with the reset flag start their
-    member's episode; only envs with the stepping flag advance.
+    outputs per bucket (device arrays; without `streams` nothing waits for the device). Envs with the reset flag
+    start their member's episode; only envs with the stepping flag advance.
 
     `placement` (all local devices when None): every batch is split over its devices along the env axis
     (`sharding`), so each size must be a multiple of their count (`Placement.padded`). `graph_mode`: MJX's CUDA
@@ -271,7 +271,9 @@ class Engine:
 
     `streams` (warp, one device): the physics runs between two jitted halves of the tick, every bucket on its own
     CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
-    when its outputs are computed.
+    when its outputs are computed. What the physics derives besides the state (contacts, constraint forces,
+    sensors) is not carried across: `Hooks.refresh` recomputes what `observe` reads (the backend's does, with a
+    full forward under `warp`; the default's kinematics serve the benchmark, which observes nothing).
     """
 
     _physics: Any = None
@@ -346,8 +348,9 @@ class Engine:
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                    stepping: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
-        """The tick after the physics (`streams`): each bucket's stepped state (`states`) brought up to date and
-        observed, as `_bucket_tick` does after its own physics."""
+        """The tick after the physics (`streams`): each bucket's stepped state (`states`, `STATE_FIELDS`) brought up
+        to date and observed, as `_bucket_tick` does after its own physics; the other fields are those of before
+        the physics until `Hooks.refresh` recomputes them (see the class docstring)."""
         out = []
         for a, mx, table, d, e, member, reset, step, x, k, state in zip(self.arrays, mxs, tables, data, extra,
                                                                          members, resets, stepping, aux, steps,
@@ -371,8 +374,8 @@ class Engine:
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
-        """Advance every bucket by one control step (asynchronously, but for `streams`: nothing waits for the
-        device)."""
+        """Advance every bucket by one control step. Without `streams` nothing waits for the device (the outputs
+        are computed asynchronously); with `streams` the tick returns when they are."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
         args = (self._models(), self._tables(), self.data, self.extra,
                 tuple(jnp.asarray(m, jnp.int32) for m in members),

@@ -100,6 +100,8 @@ class _Lane:
     graphs: list[Any]
     sources: list[Any]
     """The control buffers the graphs copy from (the graphs hold their addresses: kept alive with the lane)."""
+    batched: tuple[str, ...]
+    """The bucket's varying model fields this lane holds per world (`batchable_fields`)."""
 
 
 class StreamEngine:
@@ -112,7 +114,8 @@ class StreamEngine:
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
-                 serial: bool = False) -> None:
+                 serial: bool = False, device: str | None = None) -> None:
+        """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one)."""
         import warp as wp
         from mujoco.mjx.third_party import mujoco_warp as mjw
 
@@ -121,7 +124,15 @@ class StreamEngine:
         quiet_warp()
         wp.init()
         self.wp, self.mjw = wp, mjw
-        self.on_gpu = wp.get_device().is_cuda
+        self.device = wp.get_device(device)
+        with wp.ScopedDevice(self.device):
+            self._build(buckets, sizes, controls, serial)
+
+    def _build(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
+               serial: bool) -> None:
+        """One lane per bucket on the current Warp device (see the class docstring)."""
+        wp, mjw = self.wp, self.mjw
+        self.on_gpu = self.device.is_cuda
         self.unbatched: dict[str, tuple[str, ...]] = {}
         shared = wp.Stream() if serial and self.on_gpu else None
         self.lanes: list[_Lane] = []
@@ -145,14 +156,14 @@ class StreamEngine:
             data.geom_xmat.assign(xmat[member].astype(np.float32))
             sources = [wp.array(np.asarray(c, np.float32), dtype=float) for c in ctrls]
             if not self.on_gpu:
-                self.lanes.append(_Lane(bucket, size, model, data, None, [], sources))
+                self.lanes.append(_Lane(bucket, size, model, data, None, [], sources, ok))
                 continue
             stream = shared or wp.Stream()
             with wp.ScopedStream(stream):
                 wp.copy(data.ctrl, sources[0])
                 _load_kernels(wp, mjw, model, data)
                 graphs = [_capture(wp, mjw, stream, model, data, src, bucket.n_substeps) for src in sources]
-            self.lanes.append(_Lane(bucket, size, model, data, stream, graphs, sources))
+            self.lanes.append(_Lane(bucket, size, model, data, stream, graphs, sources, ok))
         self.synchronize()
 
     def tick(self, j: int = 0) -> None:
@@ -161,8 +172,9 @@ class StreamEngine:
             if lane.graphs:
                 self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
             else:
-                _control_step(self.wp, self.mjw, lane.model, lane.data, lane.sources[j % len(lane.sources)],
-                              lane.bucket.n_substeps)
+                with self.wp.ScopedDevice(self.device):
+                    _control_step(self.wp, self.mjw, lane.model, lane.data, lane.sources[j % len(lane.sources)],
+                                  lane.bucket.n_substeps)
 
     def synchronize(self) -> None:
         """Wait for every stream (ticks return as soon as the graphs are launched)."""
@@ -236,9 +248,13 @@ class StreamPhysics:
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int]) -> None:
+        """The lanes on the device JAX computes on (Warp's CPU device where JAX runs on the CPU, even on a host
+        with a GPU), so that the halves and the lanes exchange buffers of one device."""
+        import jax
+
         zeros = [[np.zeros((n, b.model.nu), np.float32)] for b, n in zip(buckets, sizes)]
-        self.engine = StreamEngine(buckets, sizes, zeros)
-        self.batched = [batchable_fields(b.varying)[0] for b in buckets]
+        device = "cpu" if jax.default_backend() == "cpu" else None
+        self.engine = StreamEngine(buckets, sizes, zeros, device=device)
 
     def step(self, inputs: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         """One control step of every bucket from `inputs[k]` (the controls and `LOADED_FIELDS`, JAX arrays) with
@@ -247,20 +263,22 @@ class StreamPhysics:
         from contextlib import nullcontext
 
         wp = self.engine.wp
-        for lane, given, row, names in zip(self.engine.lanes, inputs, rows, self.batched):
+        views: list[Any] = []  # what the copies read, alive until the lanes are done with them
+        for lane, given, row in zip(self.engine.lanes, inputs, rows):
             with wp.ScopedStream(lane.stream) if lane.stream is not None else nullcontext():
-                _load(wp, lane.sources[0], given["ctrl"])
-                for name in LOADED_FIELDS:
-                    _load(wp, getattr(lane.data, name), given[name])
-                for name in names:
-                    _load(wp, getattr(lane.model, name), row[name])
+                views.append(_load(wp, lane.sources[0], given["ctrl"]))
+                views += [_load(wp, getattr(lane.data, name), given[name]) for name in LOADED_FIELDS]
+                views += [_load(wp, getattr(lane.model, name), row[name]) for name in lane.batched]
         self.engine.tick(0)
         self.engine.synchronize()
         return [{name: wp.to_jax(getattr(lane.data, name)) for name in STATE_FIELDS} for lane in self.engine.lanes]
 
 
-def _load(wp: Any, dest: Any, value: Any) -> None:
-    """Copy JAX array `value` into Warp array `dest` (same number of elements; viewed without a copy first)."""
+def _load(wp: Any, dest: Any, value: Any) -> Any:
+    """Queue a copy of JAX array `value` into Warp array `dest` (same number of elements), read through a view
+    of `value`'s buffer; returns the view, which the caller keeps until the copy has run."""
     if dest.size == 0:
-        return
-    wp.copy(dest, wp.from_jax(value.reshape(dest.shape + getattr(dest.dtype, "_shape_", ())), dtype=dest.dtype))
+        return None
+    view = wp.from_jax(value.reshape(dest.shape + getattr(dest.dtype, "_shape_", ())), dtype=dest.dtype)
+    wp.copy(dest, view)
+    return view
