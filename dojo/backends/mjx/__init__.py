@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -49,7 +50,6 @@ def make(options: BackendOptions) -> MjxBackend:
     MJX's own default) and `streams` (warp, one GPU: each bucket's physics on its own CUDA stream).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
-    import os
     from pathlib import Path
 
     if options.settings.get("streams"):  # the lanes allocate through Warp: JAX takes half the GPU, not 3/4

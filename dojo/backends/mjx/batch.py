@@ -24,7 +24,7 @@ import dataclasses
 import logging
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -245,6 +245,12 @@ def _bucket_tick(arr: BucketArrays, hooks: Hooks, mx: Tree, table: dict[str, jax
     return _after_physics(arr, hooks, m, data, stepped, extra, member, reset, stepping, aux, steps)
 
 
+def _call(fn: Callable[..., Any], *args: Any) -> Any:
+    """`fn(*args)`: how a tick calls its jitted parts when they capture no CUDA graph (`capture.run_settled` when
+    they may)."""
+    return fn(*args)
+
+
 def _stable(tree: Tree, like: Tree, placement: Placement) -> Tree:
     """`tree` with the dtypes of `like`, no weak types, committed to the devices like a jitted call's outputs
     (split along the batch axis).
@@ -361,10 +367,10 @@ class Engine:
             out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
         return tuple(out)
 
-    def _split_tick(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
-                    stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
-        """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for."""
-        call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else (lambda f, *args: f(*args))
+    def _split_tick(self, call: Callable[..., Any], mxs: tuple, tables: tuple, data: tuple, extra: tuple,
+                    members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
+        """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
+        (the halves through `call`, as `tick` calls the one jitted tick)."""
         before = jax.block_until_ready(call(self._before, mxs, tables, data, extra, members, resets, stepping,
                                             inputs))
         states = self._physics.step([b[3] for b in before], [b[4] for b in before])
@@ -381,12 +387,8 @@ class Engine:
                 tuple(jnp.asarray(m, jnp.int32) for m in members),
                 tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
                 tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
-        if self._physics is not None:
-            out = self._split_tick(*args)
-        elif may_capture(self.impl, self._graphs, self._ticks):
-            out = run_settled(self._tick, *args)
-        else:
-            out = self._tick(*args)
+        call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else _call
+        out = self._split_tick(call, *args) if self._physics is not None else call(self._tick, *args)
         self._ticks += 1
         self.data = tuple(o[0] for o in out)
         self.extra = tuple(o[1] for o in out)
