@@ -88,7 +88,7 @@ def _engine_with_overflow(bucket, bits):
     """An engine whose (warp) data carries the given per-world overflow bits; nothing is compiled."""
     engine = Engine.__new__(Engine)
     engine.arrays = [SimpleNamespace(bucket=bucket)]
-    engine.data = (SimpleNamespace(_impl=SimpleNamespace(overflow=np.asarray(bits, np.int32))),)
+    engine._data = (SimpleNamespace(_impl=SimpleNamespace(overflow=np.asarray(bits, np.int32))),)  # what `data` reads
     return engine
 
 
@@ -107,7 +107,7 @@ def test_jax_data_has_no_overflow_to_report(crowded):
     """impl='jax' allocates every candidate contact: its data has no overflow field, and nothing is reported."""
     engine = Engine.__new__(Engine)
     engine.arrays = [SimpleNamespace(bucket=crowded)]
-    engine.data = (SimpleNamespace(_impl=SimpleNamespace()),)
+    engine._data = (SimpleNamespace(_impl=SimpleNamespace()),)
     assert engine.overflows() == {}
 
 

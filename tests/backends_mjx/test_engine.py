@@ -57,6 +57,27 @@ def test_reset_refill_and_step_compile_once(engine):
     assert engine.compilations() == 1
 
 
+def test_a_tick_hands_its_program_leaves_and_rebuilds_the_data_once_when_read(engine, monkeypatch):
+    """MJX flattens its dataclasses in Python and hashes every NumPy field of a model (crc32) each time, which cost
+    milliseconds per jitted call on a GPU host: a tick passes leaves taken once, and nothing of MJX is flattened."""
+    from mujoco.mjx._src import dataclasses as mjx_dataclasses
+
+    members = [np.arange(B) % len(a.bucket.members) for a in engine.arrays]
+    engine.tick(members, _flags(engine, False), _flags(engine, True), _ctrl(engine, 0.1))
+    seen = engine.data
+    assert engine.data is seen
+    times = [np.asarray(d.time) for d in seen]  # the tick donates the arrays it is given
+    hashed = []
+    wrap = mjx_dataclasses._NumPyArrayHashWrapper.__init__
+    monkeypatch.setattr(mjx_dataclasses._NumPyArrayHashWrapper, "__init__",
+                        lambda self, arr: hashed.append(arr.shape) or wrap(self, arr))
+    engine.tick(members, _flags(engine, False), _flags(engine, True), _ctrl(engine, 0.1))
+    assert hashed == []
+    assert engine.data is not seen
+    for old, new in zip(times, engine.data):
+        assert np.all(np.asarray(new.time) > old)
+
+
 def test_parity_with_mujoco_on_toy_plans():
     plans = [toy_plan(seed=s) for s in range(2)]
     rows = parity_report(plans, steps=10)

@@ -266,7 +266,7 @@ class Engine:
 
     `tick(members, resets, stepping, inputs, steps)` takes, per bucket, int32 member indices [B], reset and
     stepping flags [B], the hooks' inputs (controls [B, nu] by default) and the control step each env completes
-    (int32 [B], for predicates); it keeps the new state in `self.data` / `self.extra` and returns the hooks'
+    (int32 [B], for predicates); it keeps the new state (`self.data`) and returns the hooks'
     outputs per bucket (device arrays; without `streams` nothing waits for the device). Envs with the reset flag
     start their member's episode; only envs with the stepping flag advance.
 
@@ -294,7 +294,7 @@ class Engine:
         self.placement.check(sizes)
         self.arrays = [_prepare(b, n, impl, self.placement, graph_mode) for b, n in zip(buckets, sizes)]
         p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
-        self._tick = jax.jit(p.per_device(self._tick_all, 2, 7), donate_argnums=(2, 3),
+        self._tick = jax.jit(p.per_device(self._flat(self._tick_all), 2, 7), donate_argnums=(2, 3),
                              in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)
         if streams:
             if impl != "warp" or p.count != 1:
@@ -303,9 +303,9 @@ class Engine:
 
             self._physics = StreamPhysics(buckets, sizes)
             # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
-            self._before = jax.jit(self._before_all, donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 6),
+            self._before = jax.jit(self._flat(self._before_all), donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 6),
                                    out_shardings=p.batched)
-            self._after = jax.jit(self._after_all, donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 8),
+            self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 8),
                                   out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
@@ -314,10 +314,39 @@ class Engine:
         flags = self._flags()
         shapes = jax.eval_shape(self._tick_all, self._models(), self._tables(), data, extra, *flags[:3], inputs,
                                 flags[3])
-        self.data = _stable(data, tuple(s[0] for s in shapes), p)
-        self.extra = _stable(extra, tuple(s[1] for s in shapes), p)
+        self._model_leaves, self._model_def = jax.tree.flatten(self._models())
+        self._table_leaves, self._table_def = jax.tree.flatten(self._tables())
+        self._data_leaves, self._data_def = jax.tree.flatten(_stable(data, tuple(s[0] for s in shapes), p))
+        self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
+        self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
+
+    @property
+    def data(self) -> tuple[Tree, ...]:
+        """Each bucket's MJX data after the last tick (rebuilt from the leaves the tick keeps, once a tick)."""
+        if self._data is None:
+            self._data = jax.tree.unflatten(self._data_def, self._data_leaves)
+        return self._data
+
+    def _flat(self, fn: Callable[..., tuple]) -> Callable[..., tuple]:
+        """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
+        those four trees' leaves returning (data leaves, extra leaves, per bucket rest).
+
+        Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
+        on every call of a jitted function (about 7 ms a call on the CI machine, more than a tick's launch); lists
+        of arrays flatten in C++. The trees are rebuilt inside the trace, where it costs nothing per call."""
+        def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
+            out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
+                     jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
+            for what, tree, kept in (("data", tuple(o[0] for o in out), self._data_def),
+                                     ("extra state", tuple(o[1] for o in out), self._extra_def)):
+                if jax.tree.structure(tree) != kept:  # the leaves would be read back under the wrong fields
+                    raise TypeError(f"a tick changed the structure of its {what}: {jax.tree.structure(tree)}")
+            return (jax.tree.leaves(tuple(o[0] for o in out)), jax.tree.leaves(tuple(o[1] for o in out)),
+                    tuple(o[2:] for o in out))
+
+        return flat
 
     def _models(self) -> tuple[Tree, ...]:
         return tuple(a.mx for a in self.arrays)
@@ -367,32 +396,31 @@ class Engine:
             out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
         return tuple(out)
 
-    def _split_tick(self, call: Callable[..., Any], mxs: tuple, tables: tuple, data: tuple, extra: tuple,
+    def _split_tick(self, call: Callable[..., Any], models: list, tables: list, data: list, extra: list,
                     members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
-        before = jax.block_until_ready(call(self._before, mxs, tables, data, extra, members, resets, stepping,
-                                            inputs))
-        states = self._physics.step([b[3] for b in before], [b[4] for b in before])
-        return jax.block_until_ready(call(self._after, mxs, tables, tuple(b[0] for b in before),
-                                          tuple(b[1] for b in before), members, resets, stepping,
-                                          tuple(b[2] for b in before), steps, tuple(states)))
+        data, extra, before = jax.block_until_ready(call(self._before, models, tables, data, extra, members, resets,
+                                                         stepping, inputs))
+        states = self._physics.step([b[1] for b in before], [b[2] for b in before])
+        return jax.block_until_ready(call(self._after, models, tables, data, extra, members, resets, stepping,
+                                          tuple(b[0] for b in before), steps, tuple(states)))
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
         """Advance every bucket by one control step. Without `streams` nothing waits for the device (the outputs
         are computed asynchronously); with `streams` the tick returns when they are."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
-        args = (self._models(), self._tables(), self.data, self.extra,
+        args = (self._model_leaves, self._table_leaves, self._data_leaves, self._extra_leaves,
                 tuple(jnp.asarray(m, jnp.int32) for m in members),
                 tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
                 tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
         call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else _call
         out = self._split_tick(call, *args) if self._physics is not None else call(self._tick, *args)
         self._ticks += 1
-        self.data = tuple(o[0] for o in out)
-        self.extra = tuple(o[1] for o in out)
-        return tuple(o[2] for o in out)
+        self._data_leaves, self._extra_leaves, rest = out
+        self._data = None
+        return tuple(r[0] for r in rest)
 
     def overflows(self) -> dict[str, dict[str, int]]:
         """{bucket key: {what overflowed: worlds}} since the engine was built (warp only; reads the device).

@@ -183,7 +183,9 @@ def _park(body: ET.Element, index: int) -> None:
 
 def _unioned(root: ET.Element) -> list[ET.Element]:
     """A plan's asset elements that the union replaces: 2-D textures, materials and meshes (skyboxes stay)."""
-    return [el for el in (root.find("asset") or []) if el.tag in _UNIONED_ASSETS and el.get("type") != "skybox"]
+    asset = root.find("asset")  # the compiler writes one asset section
+    return [el for el in (asset if asset is not None else ()) if el.tag in _UNIONED_ASSETS
+            and el.get("type") != "skybox"]
 
 
 def _content(el: ET.Element) -> str:
