@@ -182,20 +182,24 @@ class _Kinematic:
         import jax
         import jax.numpy as jnp
         from dojo.backends.mjx.batch import _prepare
+        from dojo.backends.mjx.sharding import Placement
         from mujoco import mjx
 
-        self.arrays = [_prepare(b, n, impl) for b, n in zip(buckets, sizes)]
+        self.arrays = [_prepare(b, n, impl, Placement.over(None, impl)) for b, n in zip(buckets, sizes)]
         self._arm = [jnp.asarray(_arm_mask(b)) for b in buckets]
         self.data = tuple(jax.vmap(lambda q, m=b.model: mjx.make_data(m, impl=impl, naconmax=1, njmax=1)
                                    .replace(qpos=q))(jnp.asarray(a.table["qpos"][jnp.zeros(n, jnp.int32)],
                                                                  jnp.float32))
                           for b, a, n in zip(buckets, self.arrays, sizes))
+        self._model, self._model_def = jax.tree.flatten((tuple(a.mx for a in self.arrays),
+                                                         tuple(a.table for a in self.arrays)))  # once: `Engine._flat`
         self._step = jax.jit(self._step_all)
 
-    def _step_all(self, models: tuple, tables: tuple, data: tuple, members: tuple, wave: Any) -> tuple:
+    def _step_all(self, model: list, data: tuple, members: tuple, wave: Any) -> tuple:
         import jax
         from mujoco import mjx
 
+        models, tables = jax.tree.unflatten(self._model_def, model)
         out = []
         for arr, arm, mx, table, d, member in zip(self.arrays, self._arm, models, tables, data, members):
             m = mx.tree_replace({name: table[name][member] for name in arr.bucket.varying})
@@ -204,8 +208,7 @@ class _Kinematic:
         return tuple(out)
 
     def tick(self, members: Sequence[Any], resets: Any, stepping: Any, ctrls: Sequence[Any], wave: float) -> None:
-        models, tables = tuple(a.mx for a in self.arrays), tuple(a.table for a in self.arrays)
-        self.data = self._step(models, tables, self.data, tuple(members), wave)
+        self.data = self._step(self._model, self.data, tuple(members), wave)
 
 
 def _arm_mask(bucket: Any) -> np.ndarray:
@@ -240,7 +243,8 @@ def measure_batched(plans: Sequence[Any], num_envs: int, steps: int, grid: Seque
     ctrl0 = [np.asarray(a.table["ctrl"])[np.asarray(m)] for a, m in zip(engine.arrays, members)]
     ones = [np.ones(n, bool) for n in sizes]
     zeros = [np.zeros(n, bool) for n in sizes]
-    models, tables = tuple(a.mx for a in engine.arrays), tuple(a.table for a in engine.arrays)
+    # models and tables as leaves taken once: MJX's models flatten in Python per call (`Engine._flat`)
+    model, model_def = jax.tree.flatten((tuple(a.mx for a in engine.arrays), tuple(a.table for a in engine.arrays)))
 
     def tick(t: int) -> None:
         wave = 0.15 * np.sin(0.3 * t)  # every actuator (or arm joint) swings, so arms and wrist cameras move
@@ -259,25 +263,30 @@ def measure_batched(plans: Sequence[Any], num_envs: int, steps: int, grid: Seque
         config = RenderConfig(width=width, height=height, depth=depth)
         t_setup = time.perf_counter()
         renderers = [WarpRenderer(a.bucket.model, a.size, config) for a in engine.arrays]
-        observe = jax.jit(partial(_observe, renderers, programs, engine.arrays))
+        bound = partial(_observe, renderers, programs, engine.arrays)
+
+        def observe_leaves(leaves: list, *args: Any, bound: Any = bound) -> tuple:
+            return bound(*jax.tree.unflatten(model_def, leaves), *args)
+
+        observe = jax.jit(observe_leaves)
         memories = tuple(init_memory(jnp, p.layout, n) for p, n in zip(programs, sizes))
-        out = observe(models, tables, engine.data, members, memories, 1)
+        out = observe(model, engine.data, members, memories, 1)
         _block(out)
         setup_s = time.perf_counter() - t_setup
         for t in range(1, WARMUP_TICKS + 1):
             tick(t)
-            out = observe(models, tables, engine.data, members, tuple(o[1] for o in out), t)
+            out = observe(model, engine.data, members, tuple(o[1] for o in out), t)
             _block(out)
         used = _gpu_used_mib()
         t0 = time.perf_counter()
         for t in range(WARMUP_TICKS + 1, WARMUP_TICKS + 1 + steps):
             tick(t)
-            out = observe(models, tables, engine.data, members, tuple(o[1] for o in out), t)
+            out = observe(model, engine.data, members, tuple(o[1] for o in out), t)
             _block(tuple(o[0] for o in out) + tuple(o[2] for o in out))
         loop_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         for _ in range(steps):
-            _block(observe(models, tables, engine.data, members, tuple(o[1] for o in out), 1))
+            _block(observe(model, engine.data, members, tuple(o[1] for o in out), 1))
         render_s = time.perf_counter() - t0
         env_steps = sum(sizes) * steps
         row = {"width": width, "height": height, "depth": depth,

@@ -65,3 +65,28 @@ def test_rows_render_their_own_member_and_state_and_only_those_asked(engine, mon
     # Each camera's images of the rows asked for lie one after another on the host (one array per camera for the
     # policy link, `xpolicylab.columns.Rows.runs`), handed back as a [rows, cameras, ...] view.
     assert np.swapaxes(frames.rgb, 0, 1).flags.c_contiguous and np.swapaxes(frames.depth, 0, 1).flags.c_contiguous
+
+
+def test_the_render_bench_loop_runs_with_the_arms_moved_by_kinematics(monkeypatch):
+    """`dojo bench render physics=false`: the arms move along a wave by kinematics alone, the cameras render every
+    bucket each tick, and a row per size reports its rates (the stand-in painter for MuJoCo Warp's renderer)."""
+    from dojo.backends.mjx import render
+    from dojo.bench.render_bench import measure_batched
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load([])
+    plans = [compile_plan(library, library.get("task", "stack_blocks"), "standard", seed) for seed in range(2)]
+    class Blank:  # renders black frames of the asked size, one per world and camera
+        def __init__(self, model, nworld, config):
+            self.config = config
+
+        def __call__(self, m, data, in_axes):
+            shape = (data.qpos.shape[0], len(self.config.cameras), self.config.height, self.config.width)
+            return Frames(jnp.zeros((*shape, 3), jnp.uint8), None)
+
+    monkeypatch.setattr(render, "WarpRenderer", Blank)
+    result = measure_batched(plans, 2, 2, [(4, 3, False)], impl="jax", physics=False)
+    row, = result["rows"]
+    assert result["physics"] is False and result["envs"] == 2 and (row["width"], row["height"]) == (4, 3)
+    assert row["interactions_per_s"] > 0 and row["render_frames_per_s"] > 0

@@ -35,8 +35,11 @@ class BucketCameras:
         self.arrays = arrays
         self.renderer = WarpRenderer(arrays.bucket.model, arrays.size, config)
         varying, in_axes = tuple(arrays.bucket.varying), arrays.in_axes
+        # the model and table as leaves taken once: MJX's model flattens in Python per call (`Engine._flat`)
+        self._model, model_def = jax.tree.flatten((arrays.mx, arrays.table))
 
-        def render(mx: Any, table: dict[str, jax.Array], member: jax.Array, data: Any) -> Frames:
+        def render(model: list, member: jax.Array, data: Any) -> Frames:
+            mx, table = jax.tree.unflatten(model_def, model)
             return self.renderer(mx.tree_replace({name: table[name][member] for name in varying}), data, in_axes)
 
         self._render = jax.jit(render)
@@ -57,7 +60,7 @@ class BucketCameras:
         """Images of `rows` of the bucket at the engine's current state `data` (`members`: every row's member
         index), only those rows copied to the host. Run settled: the renderer's Warp calls capture CUDA graphs on
         first use."""
-        out = run_settled(self._render, self.arrays.mx, self.arrays.table, jnp.asarray(members, jnp.int32), data)
+        out = run_settled(self._render, self._model, jnp.asarray(members, jnp.int32), data)
         pick = jnp.asarray(np.asarray(rows, np.int32))
 
         def host(images: jax.Array) -> np.ndarray:
