@@ -35,11 +35,9 @@ def compare_on_devices(count: int) -> dict:
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     enable_compilation_cache(CACHE_DIR)
-    plans = ([toy_plan(seed=s) for s in range(3)]
-             + [toy_plan(setting="random", seed=s, clutter=c) for s, c in enumerate([("ball",), ("ball", "ball")])])
-    buckets = make_buckets(plans)
+    buckets = make_buckets([toy_plan(seed=s) for s in range(3)])  # one bucket; every bucket is split alike
     wide = Placement.over(local_devices(count), "jax")
-    sizes = [wide.padded(3), wide.padded(9)]  # 8 and 12: 2 rows a device at least, whole multiples of 4
+    sizes = [wide.padded(9)]  # 12: 3 rows a device, a whole multiple of 4
     out: dict = {"sizes": sizes, "visible": len(jax.devices()), "runs": {}}
     for n in (1, count):
         engine = Engine(buckets, sizes, "jax", placement=Placement.over(local_devices(n), "jax"))
@@ -81,9 +79,9 @@ def test_four_devices_step_exactly_what_one_device_steps(sharded: dict) -> None:
 
 def test_each_batch_lies_split_over_every_device_and_compiles_once(sharded: dict) -> None:
     one, four = sharded["runs"]["1"], sharded["runs"][str(DEVICES)]
-    assert sharded["sizes"] == [8, 12]
-    assert one["devices_holding_state"] == [1, 1] and four["devices_holding_state"] == [DEVICES, DEVICES]
-    assert four["shard_rows"] == [2, 3]
+    assert sharded["sizes"] == [12]
+    assert one["devices_holding_state"] == [1] and four["devices_holding_state"] == [DEVICES]
+    assert four["shard_rows"] == [3]
     assert one["compilations"] == four["compilations"] == 1
 
 
