@@ -266,9 +266,9 @@ class Engine:
 
     `tick(members, resets, stepping, inputs, steps)` takes, per bucket, int32 member indices [B], reset and
     stepping flags [B], the hooks' inputs (controls [B, nu] by default) and the control step each env completes
-    (int32 [B], for predicates); it keeps the new state (`self.data`) and returns the hooks'
-    outputs per bucket (device arrays; without `streams` nothing waits for the device). Envs with the reset flag
-    start their member's episode; only envs with the stepping flag advance.
+    (int32 [B], for predicates); it keeps the new state (`self.data`) and returns the hooks' outputs per bucket
+    (device arrays; without `streams` nothing waits for the device). Envs with the reset flag start their member's
+    episode; only envs with the stepping flag advance.
 
     `placement` (all local devices when None): every batch is split over its devices along the env axis
     (`sharding`), so each size must be a multiple of their count (`Placement.padded`). `graph_mode`: MJX's CUDA
@@ -303,10 +303,10 @@ class Engine:
 
             self._physics = StreamPhysics(buckets, sizes)
             # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
-            self._before = jax.jit(self._flat(self._before_all), donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 6),
-                                   out_shardings=p.batched)
-            self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3), in_shardings=p.in_shardings(2, 8),
-                                  out_shardings=p.batched)
+            self._before = jax.jit(self._flat(self._before_all), donate_argnums=(2, 3),
+                                   in_shardings=p.in_shardings(2, 6), out_shardings=p.batched)
+            self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3),
+                                  in_shardings=p.in_shardings(2, 8), out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
@@ -334,8 +334,9 @@ class Engine:
         those four trees' leaves returning (data leaves, extra leaves, per bucket rest).
 
         Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
-        on every call of a jitted function (about 7 ms a call on the CI machine, more than a tick's launch); lists
-        of arrays flatten in C++. The trees are rebuilt inside the trace, where it costs nothing per call."""
+        on every call of a jitted function, hashing each NumPy field of a model (about 7 ms a call on the CI
+        machine; on an H200 it held the GPU idle for most of a split tick's halves). Lists of arrays flatten in C++;
+        the trees are rebuilt inside the trace, where it costs nothing per call."""
         def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
