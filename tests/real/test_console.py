@@ -189,7 +189,7 @@ def test_an_operator_runs_and_e_stops_a_trial_and_raters_score_it_blind(console,
         assert moved > 0.1, "the policy did not move the arm before the e-stop"
         assert returned < 0.01  # the emulator's own joint state, at the reset pose
         # A command on its way before the run saw the e-stop is refused and counted, never sent (a loaded CI
-        # machine made one); the run asks for none after it.
+        # machine made one).
         assert trial.end_reason == "estop" and trial.counters["refused_estop"] <= 1
 
         video = page.request.get(f"http://{host}/video/{trial.code}.mp4")
