@@ -340,12 +340,12 @@ class Engine:
         def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            for what, tree, kept in (("data", tuple(o[0] for o in out), self._data_def),
-                                     ("extra state", tuple(o[1] for o in out), self._extra_def)):
-                if jax.tree.structure(tree) != kept:  # the leaves would be read back under the wrong fields
-                    raise TypeError(f"a tick changed the structure of its {what}: {jax.tree.structure(tree)}")
-            return (jax.tree.leaves(tuple(o[0] for o in out)), jax.tree.leaves(tuple(o[1] for o in out)),
-                    tuple(o[2:] for o in out))
+            data, data_def = jax.tree.flatten(tuple(o[0] for o in out))
+            extra, extra_def = jax.tree.flatten(tuple(o[1] for o in out))
+            for what, made, kept in (("data", data_def, self._data_def), ("extra state", extra_def, self._extra_def)):
+                if made != kept:  # the leaves would be read back under the wrong fields
+                    raise TypeError(f"a tick changed the structure of its {what}: {made}")
+            return data, extra, tuple(o[2:] for o in out)
 
         return flat
 
