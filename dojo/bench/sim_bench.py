@@ -8,7 +8,8 @@
 - `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans;
 - `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`, with
   the backend config's `merge_growth`: tasks share a structure where the scenes allow it and the merged model stays
-  within that growth of its largest task's), its bucket count, sizes and models beside its rates;
+  within that growth of its largest task's), its bucket count, sizes and models beside its rates; with
+  `backend.streams=true` on the split tick, as `dojo run backend.merge=true backend.streams=true` runs it;
 - `streams` (by name; MuJoCo Warp): every bucket's physics on its own CUDA stream, concurrently (`mjx.streams`),
   with the same graphs on one stream beside it;
 - `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped;
@@ -396,7 +397,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         about = {"buckets": len(merged), "bucket_sizes": merged_sizes, "padding_s": merge_s,
                  "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged)}
         if "merged" in modes:
-            out["merged"] = {**about, **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest, graphs)])}
+            out["merged"] = {**about, **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest, graphs,
+                                                     engine_streams)])}
         if "merged_streams" in modes:
             out["merged_streams"] = {**about, **_streams(merged, merged_sizes, steps, warmup)}
     if "alone" in modes:

@@ -128,3 +128,23 @@ def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -
     assert any(unbatched.values())  # the toy scenes' random setting varies dof_M0 (clutter of other masses)
     for key, names in unbatched.items():
         assert not set(names) & warp_fields, (key, names)
+
+
+def test_the_exchange_moves_fields_as_words_and_refuses_other_widths() -> None:
+    """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, and a field
+    of another width is refused by name rather than copied short."""
+    import jax.numpy as jnp
+    import warp as wp
+
+    from dojo.backends.mjx.streams import _words, pack_words, unpack_words
+
+    ints = jnp.arange(-3, 3, dtype=jnp.int32).reshape(2, 3)
+    floats = jnp.asarray([[np.pi, -0.0], [np.inf, 1e-30]], jnp.float32)
+    words = pack_words([ints, jnp.zeros((2, 0), jnp.float32), floats])
+    assert words.dtype == jnp.float32 and words.shape == (10,)
+    back = unpack_words(words[6:], [floats])[0]
+    np.testing.assert_array_equal(np.asarray(back).view(np.uint32), np.asarray(floats).view(np.uint32))
+    np.testing.assert_array_equal(np.asarray(words[:6]).view(np.int32), np.asarray(ints).reshape(-1))
+    assert _words(wp, wp.zeros((2, 3), dtype=wp.mat33, device="cpu")).shape == (54,)
+    with pytest.raises(ValueError, match="32-bit scalars, not .*float64"):
+        _words(wp, wp.zeros(4, dtype=wp.float64, device="cpu"))

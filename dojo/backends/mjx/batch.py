@@ -33,7 +33,7 @@ import numpy as np
 from mujoco import mjx
 
 from dojo.backends.mjx.bucket import Bucket, member_data
-from dojo.backends.mjx.capture import run_settled
+from dojo.backends.mjx.capture import run_settled, wait_for
 from dojo.backends.mjx.sharding import Placement
 from dojo.backends.mjx.substeps import substeps
 
@@ -369,17 +369,18 @@ class Engine:
     def _before_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                     stepping: tuple, inputs: tuple) -> tuple:
         """The tick up to the physics (`streams`): per bucket the data after resets, the extra state, the controls'
-        aux outputs, what the physics loads (`streams.LOADED_FIELDS` and the controls) and the environments'
-        rows of the varying model fields."""
-        from dojo.backends.mjx.streams import LOADED_FIELDS
+        aux outputs and what its lane loads (`streams.exchange_fields`: the controls, the state, and the
+        environments' rows of the varying model fields) packed into one flat array."""
+        from dojo.backends.mjx.streams import exchange_fields, pack_words
 
         out = []
-        for a, mx, table, d, e, member, reset, step, given in zip(self.arrays, mxs, tables, data, extra, members,
-                                                                  resets, stepping, inputs):
+        for a, mx, table, d, e, member, reset, step, given, batched in zip(
+                self.arrays, mxs, tables, data, extra, members, resets, stepping, inputs, self._physics.batched):
             a, m, rows = _gathered(a, mx, table, member)
             d, driven, e, aux = _before_physics(a, self.hooks, m, table, d, e, member, reset, step, given)
-            loaded = {name: getattr(driven, name) for name in (*LOADED_FIELDS, "ctrl")}
-            out.append((d, e, aux, loaded, rows))
+            words = pack_words([getattr(driven, name) if owner == "data" else rows[name]
+                                for owner, name in exchange_fields(batched)])
+            out.append((d, e, aux, words))
         return tuple(out)
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
@@ -387,13 +388,14 @@ class Engine:
         """The tick after the physics (`streams`): each bucket's stepped state (`states`, `STATE_FIELDS`) brought up
         to date and observed, as `_bucket_tick` does after its own physics; the other fields are those of before
         the physics until `Hooks.refresh` recomputes them (see the class docstring)."""
+        from dojo.backends.mjx.streams import unpack_words
+
         out = []
         for a, mx, table, d, e, member, reset, step, x, k, state in zip(self.arrays, mxs, tables, data, extra,
                                                                          members, resets, stepping, aux, steps,
                                                                          states):
             a, m, _ = _gathered(a, mx, table, member)
-            stepped = d.replace(**{name: value.astype(getattr(d, name).dtype).reshape(getattr(d, name).shape)
-                                   for name, value in state.items()})
+            stepped = d.replace(**dict(zip(STATE_FIELDS, unpack_words(state, [getattr(d, n) for n in STATE_FIELDS]))))
             out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
         return tuple(out)
 
@@ -401,11 +403,11 @@ class Engine:
                     members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
-        data, extra, before = jax.block_until_ready(call(self._before, models, tables, data, extra, members, resets,
-                                                         stepping, inputs))
-        states = self._physics.step([b[1] for b in before], [b[2] for b in before])
-        return jax.block_until_ready(call(self._after, models, tables, data, extra, members, resets, stepping,
-                                          tuple(b[0] for b in before), steps, tuple(states)))
+        data, extra, before = wait_for(call(self._before, models, tables, data, extra, members, resets, stepping,
+                                            inputs))
+        states = self._physics.step([b[1] for b in before])
+        return wait_for(call(self._after, models, tables, data, extra, members, resets, stepping,
+                             tuple(b[0] for b in before), steps, tuple(states)))
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
