@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 Tree = Any
 # Per-world state a reset or a non-stepping environment restores; everything else is derived from it by a step.
 STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
+RESET_FIELDS = (*STATE_FIELDS, "geom_xpos", "geom_xmat")
+"""What a reset writes (`_before_physics`): the state and every geom's pose (fixtures' poses included)."""
 
 
 REST_MARGIN = 2
@@ -303,10 +305,10 @@ class Engine:
 
             self._physics = StreamPhysics(buckets, sizes)
             # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
-            self._before = jax.jit(self._flat(self._before_all), donate_argnums=(2, 3),
+            self._before = jax.jit(self._flat(self._before_all, keeps_data=False), donate_argnums=(3,),
                                    in_shardings=p.in_shardings(2, 6), out_shardings=p.batched)
             self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3),
-                                  in_shardings=p.in_shardings(2, 8), out_shardings=p.batched)
+                                  in_shardings=p.in_shardings(2, 9), out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
@@ -329,9 +331,10 @@ class Engine:
             self._data = jax.tree.unflatten(self._data_def, self._data_leaves)
         return self._data
 
-    def _flat(self, fn: Callable[..., tuple]) -> Callable[..., tuple]:
+    def _flat(self, fn: Callable[..., tuple], keeps_data: bool = True) -> Callable[..., tuple]:
         """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
-        those four trees' leaves returning (data leaves, extra leaves, per bucket rest).
+        those four trees' leaves returning (data leaves, extra leaves, per bucket rest); without `keeps_data`, `fn`
+        returns per bucket (extra, *rest) and the function (extra leaves, per bucket rest).
 
         Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
         on every call of a jitted function, hashing each NumPy field of a model (about 7 ms a call on the CI
@@ -340,12 +343,14 @@ class Engine:
         def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            data, data_def = jax.tree.flatten(tuple(o[0] for o in out))
-            extra, extra_def = jax.tree.flatten(tuple(o[1] for o in out))
-            for what, made, kept in (("data", data_def, self._data_def), ("extra state", extra_def, self._extra_def)):
-                if made != kept:  # the leaves would be read back under the wrong fields
+            kept = (("data", self._data_def),) if keeps_data else ()
+            leaves = []
+            for k, (what, structure) in enumerate((*kept, ("extra state", self._extra_def))):
+                found, made = jax.tree.flatten(tuple(o[k] for o in out))
+                if made != structure:  # the leaves would be read back under the wrong fields
                     raise TypeError(f"a tick changed the structure of its {what}: {made}")
-            return data, extra, tuple(o[2:] for o in out)
+                leaves.append(found)
+            return (*leaves, tuple(o[len(leaves):] for o in out))
 
         return flat
 
@@ -368,9 +373,12 @@ class Engine:
 
     def _before_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                     stepping: tuple, inputs: tuple) -> tuple:
-        """The tick up to the physics (`streams`): per bucket the data after resets, the extra state, the controls'
-        aux outputs and what its lane loads (`streams.exchange_fields`: the controls, the state, and the
-        environments' rows of the varying model fields) packed into one flat array."""
+        """The tick up to the physics (`streams`): per bucket the extra state, the fields the resets wrote
+        (`RESET_FIELDS`), the controls' aux outputs and what its lane loads (`streams.exchange_fields`: the
+        controls, the state, and the environments' rows of the varying model fields) packed into one flat array.
+
+        Why not the whole data: a bucket's MuJoCo Warp data is some 185 arrays, each an output to hand back and an
+        input to donate; the second half takes the data as it was and these few fields."""
         from dojo.backends.mjx.streams import exchange_fields, pack_words
 
         out = []
@@ -380,21 +388,21 @@ class Engine:
             d, driven, e, aux = _before_physics(a, self.hooks, m, table, d, e, member, reset, step, given)
             words = pack_words([getattr(driven, name) if owner == "data" else rows[name]
                                 for owner, name in exchange_fields(batched)])
-            out.append((d, e, aux, words))
+            out.append((e, {name: getattr(d, name) for name in RESET_FIELDS}, aux, words))
         return tuple(out)
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
-                   stepping: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
+                   stepping: tuple, reset_fields: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
         """The tick after the physics (`streams`): each bucket's stepped state (`states`, `STATE_FIELDS`) brought up
         to date and observed, as `_bucket_tick` does after its own physics; the other fields are those of before
         the physics until `Hooks.refresh` recomputes them (see the class docstring)."""
         from dojo.backends.mjx.streams import unpack_words
 
         out = []
-        for a, mx, table, d, e, member, reset, step, x, k, state in zip(self.arrays, mxs, tables, data, extra,
-                                                                         members, resets, stepping, aux, steps,
-                                                                         states):
+        for a, mx, table, d, e, member, reset, step, written, x, k, state in zip(
+                self.arrays, mxs, tables, data, extra, members, resets, stepping, reset_fields, aux, steps, states):
             a, m, _ = _gathered(a, mx, table, member)
+            d = d.replace(**written)
             stepped = d.replace(**dict(zip(STATE_FIELDS, unpack_words(state, [getattr(d, n) for n in STATE_FIELDS]))))
             out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
         return tuple(out)
@@ -403,11 +411,10 @@ class Engine:
                     members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
-        data, extra, before = wait_for(call(self._before, models, tables, data, extra, members, resets, stepping,
-                                            inputs))
-        states = self._physics.step([b[1] for b in before])
+        extra, before = wait_for(call(self._before, models, tables, data, extra, members, resets, stepping, inputs))
+        states = self._physics.step([b[2] for b in before])
         return wait_for(call(self._after, models, tables, data, extra, members, resets, stepping,
-                             tuple(b[0] for b in before), steps, tuple(states)))
+                             tuple(b[0] for b in before), tuple(b[1] for b in before), steps, tuple(states)))
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
