@@ -1,5 +1,6 @@
 """The built-in zero and random policies run inside the mjx backend's tick (`policy.on_device`): zero records what
-the host path records, bit for bit; random is reproducible from its seed; a slot refilled starts a fresh chunk.
+the host path records, bit for bit; random is reproducible from its seed; a slot refilled starts a fresh chunk. And
+the tick with its physics on Warp's lanes (`backend.streams`) records what the jitted tick records.
 
 Real plans (the recording pack's six-step task, two 6-DoF arms) on MuJoCo Warp's CPU device: a backend loads in
 about 5 s and steps in about 0.8 s here. The chunk size (4) does not divide the horizon (6), so every episode
@@ -65,11 +66,12 @@ class _Asked:
 
 
 def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, num_envs: int = 2,
-         known: list[PlannedEpisode] | None = None) -> tuple[dict[tuple, tuple], Any, int]:
-    """`dojo run`'s loop on the mjx backend, which knows the plans of `known` (default: the queue's): each
-    episode's result row (by key), the backend after the run and how many chunks the policy was asked for."""
+         known: list[PlannedEpisode] | None = None, streams: bool = False) -> tuple[dict[tuple, tuple], Any, int]:
+    """`dojo run`'s loop on the mjx backend (`backend.streams` as given), which knows the plans of `known`
+    (default: the queue's): each episode's result row (by key), the backend after the run and how many chunks the
+    policy was asked for."""
     link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"))
-    options = BackendOptions(settings={"impl": "warp"}, action_modes=("joint",),
+    options = BackendOptions(settings={"impl": "warp", "streams": streams}, action_modes=("joint",),
                              plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue})
     built = []
 
@@ -85,8 +87,14 @@ def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, nu
     return rows, built[0], link.chunks
 
 
-def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, caplog):
-    host, host_backend, asked = _run(queue, {"name": "zero"}, "off")
+@pytest.fixture(scope="module")
+def host_zero(queue) -> tuple[dict[tuple, tuple], Any, int]:
+    """The zero policy on the host path, the jitted tick: what the other paths are held to."""
+    return _run(queue, {"name": "zero"}, "off")
+
+
+def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, host_zero, caplog):
+    host, host_backend, asked = host_zero
     with caplog.at_level(logging.INFO, logger="dojo.evaluation.evaluate"):
         device, device_backend, not_asked = _run(queue, {"name": "zero"}, "on")
     assert len(host) == 3 and all(steps == 6 for _, _, steps, *_ in host.values())
@@ -96,6 +104,16 @@ def test_zero_in_the_tick_records_what_the_host_path_records_bit_for_bit(queue, 
     assert device_backend._engine.compilations() == 1
     assert asked == 3 * 2 and not_asked == 0  # two chunks per episode on the host, none asked on the device
     assert "policy zero runs on the device" in caplog.text
+
+
+def test_physics_on_streams_records_what_the_jitted_tick_records_bit_for_bit(queue, host_zero):
+    """`backend.streams=true` (`dojo run`'s engine with its physics on Warp's lanes between two jitted halves) with
+    the backend's own predicates, observations and full forward after the physics: the same rows and poses."""
+    host, host_backend, _ = host_zero
+    split, split_backend, asked = _run(queue, {"name": "zero"}, "off", streams=True)
+    assert split_backend._engine._physics is not None and split_backend._engine.compilations() == 1
+    assert split == host and asked == 3 * 2
+    np.testing.assert_array_equal(split_backend.qpos(), host_backend.qpos())
 
 
 def test_random_in_the_tick_is_reproducible_from_its_seed_and_restarts_with_each_episode(queue):
