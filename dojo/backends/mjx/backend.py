@@ -412,8 +412,9 @@ class MjxBackend(Backend):
             self._renderers = [BucketCameras(arr, self.render_config, self._image_buffers) if self.impl == "warp" else
                                CpuRenderer([m.model for m in arr.bucket.members], self.render_config)
                                for arr in self._engine.arrays]
-        log.info("mjx backend: engine built (%.1f s); first tick (compiles on a cold cache)",
-                 time.perf_counter() - start)
+        lanes = "; each bucket's physics on its own Warp lane between two jitted halves (backend.streams)"
+        log.info("mjx backend: engine built (%.1f s)%s; first tick (compiles on a cold cache)",
+                 time.perf_counter() - start, lanes if self.streams else "")
         start = time.perf_counter()
         self.reset()
         log.info("mjx backend: first tick done (%.1f s)", time.perf_counter() - start)
