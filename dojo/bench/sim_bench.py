@@ -8,8 +8,7 @@
 - `cpu`: the `mujoco` backend (`dojo.backends.mujoco.bench.measure_cpu`) on the same plans;
 - `merged` (asked for by name): `heterogeneous` over buckets merged across tasks (`make_buckets(merge=True)`, with
   the backend config's `merge_growth`: tasks share a structure where the scenes allow it and the merged model stays
-  within that growth of its largest task's), its bucket count, sizes and models beside its rates; with
-  `backend.streams=true` on the split tick, as `dojo run backend.merge=true backend.streams=true` runs it;
+  within that growth of its largest task's), its bucket count, sizes and models beside its rates;
 - `streams` (by name; MuJoCo Warp): every bucket's physics on its own CUDA stream, concurrently (`mjx.streams`),
   with the same graphs on one stream beside it;
 - `merged_streams` (by name; MuJoCo Warp): `streams` over the merged buckets: fewer, larger launches, overlapped;
@@ -18,6 +17,10 @@
   rate for its share of the batch: a task whose scenes cost five times another's per step costs so in any batch,
   so an engine passes it only by running tasks faster side by side than alone (the mix's `X_over_ideal_mix` is
   how close an engine comes).
+
+With `backend.streams=true` the engine of `heterogeneous` and `merged` runs its physics on Warp's lanes between two
+jitted halves (`dojo run`'s engine under that setting, with `backend.merge=true` for `merged`), and their figures
+add `split_tick_ms`: the median milliseconds of a timed tick's first half, lanes and second half, each waited for.
 
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
@@ -136,6 +139,8 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     for k in range(warmup):
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
     jax.block_until_ready(engine.data)
+    if streams:
+        engine.split_ms = {"first_half": [], "lanes": [], "second_half": []}
     start = time.perf_counter()
     for k in range(steps):
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
@@ -147,6 +152,8 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     out = {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
            "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
            "qpos": [np.asarray(d.qpos) for d in engine.data]}
+    if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks
+        out["split_tick_ms"] = {part: float(np.median(kept)) for part, kept in engine.split_ms.items()}
     # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
     # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
     del engine
@@ -227,10 +234,13 @@ def _models(buckets: Sequence[Bucket]) -> list[dict[str, Any]]:
 
 def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
     seconds = sum(r["seconds"] for r in runs)
-    return {"interactions_per_s": sum(r["interactions"] for r in runs) / seconds,
-            "physics_steps_per_s": sum(r["physics_steps"] for r in runs) / seconds,
-            "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
-            "compilations": int(sum(r["compilations"] for r in runs))}
+    out = {"interactions_per_s": sum(r["interactions"] for r in runs) / seconds,
+           "physics_steps_per_s": sum(r["physics_steps"] for r in runs) / seconds,
+           "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
+           "compilations": int(sum(r["compilations"] for r in runs))}
+    if len(runs) == 1 and "split_tick_ms" in runs[0]:  # one engine on a split tick: where its ticks' time went
+        out["split_tick_ms"] = runs[0]["split_tick_ms"]
+    return out
 
 
 def _peak_memory() -> int | None:

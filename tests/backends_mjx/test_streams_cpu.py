@@ -148,3 +148,13 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths() -> None:
     assert _words(wp, wp.zeros((2, 3), dtype=wp.mat33, device="cpu")).shape == (54,)
     with pytest.raises(ValueError, match="32-bit scalars, not .*float64"):
         _words(wp, wp.zeros(4, dtype=wp.float64, device="cpu"))
+
+
+def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:
+    """`dojo bench sim ... backend.streams=true`: the engine's figures carry each part's median milliseconds."""
+    from dojo.bench.sim_bench import _rates, _run
+
+    run = _run(buckets, [B] * len(buckets), "warp", steps=2, warmup=0, streams=True)
+    parts = _rates([run])["split_tick_ms"]
+    assert list(parts) == ["first_half", "lanes", "second_half"] and all(v > 0 for v in parts.values())
+    assert "split_tick_ms" not in _rates([run, run])  # several engines (homogeneous): no one tick to split

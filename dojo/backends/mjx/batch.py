@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, Callable, Sequence
@@ -286,6 +287,9 @@ class Engine:
 
     _physics: Any = None
     """`streams.StreamPhysics` with `streams`; None: the physics runs inside the jitted tick."""
+    split_ms: dict[str, list[float]] | None = None
+    """With `streams`, set to {"first_half": [], "lanes": [], "second_half": []}: each tick appends the wall
+    milliseconds of its parts, each waited for (`dojo bench sim` reports their medians)."""
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
                  example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
@@ -411,10 +415,18 @@ class Engine:
                     members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
+        times = [time.perf_counter()]
         extra, before = wait_for(call(self._before, models, tables, data, extra, members, resets, stepping, inputs))
+        times.append(time.perf_counter())
         states = self._physics.step([b[2] for b in before])
-        return wait_for(call(self._after, models, tables, data, extra, members, resets, stepping,
-                             tuple(b[0] for b in before), tuple(b[1] for b in before), steps, tuple(states)))
+        times.append(time.perf_counter())
+        out = wait_for(call(self._after, models, tables, data, extra, members, resets, stepping,
+                            tuple(b[0] for b in before), tuple(b[1] for b in before), steps, tuple(states)))
+        times.append(time.perf_counter())
+        if self.split_ms is not None:
+            for (part, kept), start, end in zip(self.split_ms.items(), times, times[1:]):
+                kept.append(1e3 * (end - start))
+        return out
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
