@@ -397,9 +397,10 @@ class Engine:
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                    stepping: tuple, reset_fields: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
-        """The tick after the physics (`streams`): each bucket's stepped state (`states`, `STATE_FIELDS`) brought up
-        to date and observed, as `_bucket_tick` does after its own physics; the other fields are those of before
-        the physics until `Hooks.refresh` recomputes them (see the class docstring)."""
+        """The tick after the physics (`streams`): each bucket's data as the last tick left it with the fields its
+        resets wrote (`reset_fields`) and its stepped `STATE_FIELDS` (`states`, its lane's outbox) brought up to date
+        and observed, as `_bucket_tick` does after its own physics; the other fields are those of before the
+        physics until `Hooks.refresh` recomputes them (see the class docstring)."""
         from dojo.backends.mjx.streams import unpack_words
 
         out = []
@@ -424,7 +425,7 @@ class Engine:
                             tuple(b[0] for b in before), tuple(b[1] for b in before), steps, tuple(states)))
         times.append(time.perf_counter())
         if self.split_ms is not None:
-            for (part, kept), start, end in zip(self.split_ms.items(), times, times[1:]):
+            for kept, start, end in zip(self.split_ms.values(), times, times[1:]):
                 kept.append(1e3 * (end - start))
         return out
 

@@ -233,7 +233,7 @@ class StreamEngine:
             xpos, xmat = bucket.geom_poses()  # fixtures' poses: Warp computes them in make_data only (`Bucket.table`)
             data.geom_xpos.assign(xpos[member].astype(np.float32))
             data.geom_xmat.assign(xmat[member].astype(np.float32))
-            lane = _Lane(bucket, size, model, data, None, [], [], [], ok)
+            lane = _Lane(bucket, size, model, data, stream=None, graphs=[], programs=[], sources=[], batched=ok)
             if exchange:
                 loaded = [getattr(model if owner == "model" else data, name) for owner, name in exchange_fields(ok)]
                 lane.inbox = wp.zeros(_word_count(wp, loaded), dtype=wp.float32)
@@ -327,8 +327,8 @@ class StreamPhysics:
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
     the lanes' graphs (each moves its inbox into the fields, steps, and stores the new state in its outbox); and a
     jitted half that reads the outboxes back (one DLPack view each, no copy), brings the derived quantities up to
-    date and observes (`batch._after_physics`). The host waits for the first half before it
-    launches the lanes, and for the lanes before the second half, so each side reads only finished buffers.
+    date and observes (`batch._after_physics`). The host waits for the first half before it launches the lanes,
+    and for the lanes before the second half, so each side reads only finished buffers.
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int]) -> None:
