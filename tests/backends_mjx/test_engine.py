@@ -59,7 +59,8 @@ def test_reset_refill_and_step_compile_once(engine):
 
 def test_a_tick_hands_its_program_leaves_and_rebuilds_the_data_once_when_read(engine, monkeypatch):
     """MJX flattens its dataclasses in Python and hashes every NumPy field of a model (crc32) each time, which cost
-    milliseconds per jitted call on a GPU host: a tick passes leaves taken once, and nothing of MJX is flattened."""
+    milliseconds per jitted call on a GPU host: a tick passes leaves taken once, and nothing of MJX is flattened;
+    nor the data's empty arrays, each of which a call would handle all the same."""
     from mujoco.mjx._src import dataclasses as mjx_dataclasses
 
     members = [np.arange(B) % len(a.bucket.members) for a in engine.arrays]
@@ -74,6 +75,9 @@ def test_a_tick_hands_its_program_leaves_and_rebuilds_the_data_once_when_read(en
     engine.tick(members, _flags(engine, False), _flags(engine, True), _ctrl(engine, 0.1))
     assert hashed == []
     assert engine.data is not seen
+    # the fields the toy scenes lack (tendons: empty arrays) are not handed to the program, yet read back whole
+    assert engine._data_empty and all(x.size for x in engine._data_leaves)
+    assert all(np.asarray(d.ten_length).shape == (B, 0) for d in engine.data)
     for old, new in zip(times, engine.data):
         assert np.all(np.asarray(new.time) > old)
 

@@ -322,7 +322,12 @@ class Engine:
                                 flags[3])
         self._model_leaves, self._model_def = jax.tree.flatten(self._models())
         self._table_leaves, self._table_def = jax.tree.flatten(self._tables())
-        self._data_leaves, self._data_def = jax.tree.flatten(_stable(data, tuple(s[0] for s in shapes), p))
+        leaves, self._data_def = jax.tree.flatten(_stable(data, tuple(s[0] for s in shapes), p))
+        self._data_empty = {k: x for k, x in enumerate(leaves) if x.size == 0}
+        """The data's empty arrays by position (fields a scene lacks: tendons, sensors, flex): kept out of the
+        tick's arguments and outputs, where each array costs a call its handling whatever its size (38 of a
+        MuJoCo Warp data's 185 on the built-in tasks)."""
+        self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
         self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
@@ -332,8 +337,15 @@ class Engine:
     def data(self) -> tuple[Tree, ...]:
         """Each bucket's MJX data after the last tick (rebuilt from the leaves the tick keeps, once a tick)."""
         if self._data is None:
-            self._data = jax.tree.unflatten(self._data_def, self._data_leaves)
+            self._data = jax.tree.unflatten(self._data_def, self._with_empty(self._data_leaves, lambda x: x))
         return self._data
+
+    def _with_empty(self, kept: Sequence[Any], make: Callable[[Any], Any]) -> list:
+        """The data's leaves in order: `kept` (the non-empty ones), and `make(empty array)` in the empty ones'
+        places."""
+        rest = iter(kept)
+        return [make(self._data_empty[k]) if k in self._data_empty else next(rest)
+                for k in range(self._data_def.num_leaves)]
 
     def _flat(self, fn: Callable[..., tuple], keeps_data: bool = True) -> Callable[..., tuple]:
         """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
@@ -345,15 +357,18 @@ class Engine:
         machine; on an H200 it held the GPU idle for most of a split tick's halves). Lists of arrays flatten in C++;
         the trees are rebuilt inside the trace, where it costs nothing per call."""
         def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
+            rows = self.placement.count  # under `per_device` each device holds its share of every batch's rows
+            data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
             kept = (("data", self._data_def),) if keeps_data else ()
             leaves = []
             for k, (what, structure) in enumerate((*kept, ("extra state", self._extra_def))):
                 found, made = jax.tree.flatten(tuple(o[k] for o in out))
-                if made != structure:  # the leaves would be read back under the wrong fields
-                    raise TypeError(f"a tick changed the structure of its {what}: {made}")
-                leaves.append(found)
+                if made != structure or (what == "data" and any(found[j].size for j in self._data_empty)):
+                    raise TypeError(f"a tick changed the structure of its {what}: {made}")  # read back wrong
+                leaves.append([x for j, x in enumerate(found) if j not in self._data_empty] if what == "data"
+                              else found)
             return (*leaves, tuple(o[len(leaves):] for o in out))
 
         return flat
