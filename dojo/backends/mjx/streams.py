@@ -77,22 +77,16 @@ def _words(wp: Any, array: Any) -> Any:
     return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(count,), device=array.device, copy=False)
 
 
-def _word_count(wp: Any, arrays: Sequence[Any]) -> int:
-    """How many 32-bit words `arrays` hold together."""
-    return sum(a.size * wp.types.type_size_in_bytes(a.dtype) // 4 for a in arrays)
-
-
-def _packed(wp: Any, arrays: Sequence[Any], buffer: Any, into: bool) -> list[Copy]:
-    """The copies between `buffer` (flat words) and `arrays` laid end to end in order: from the buffer into the
-    arrays (`into`), or from the arrays into it. Empty arrays take no room."""
+def _exchange(wp: Any, arrays: Sequence[Any], into: bool) -> tuple[Any, list[Copy]]:
+    """A flat buffer of words holding `arrays` end to end in order, and the copies between it and them: from the
+    buffer into the arrays (`into`), or from the arrays into it. Empty arrays take no room."""
+    views = [_words(wp, array) for array in arrays if array.size]
+    buffer = wp.zeros(sum(view.size for view in views), dtype=wp.float32)
     copies, at = [], 0
-    for array in arrays:
-        if array.size == 0:
-            continue
-        words = _words(wp, array)
-        copies.append((words, buffer, 0, at, words.size) if into else (buffer, words, at, 0, words.size))
-        at += words.size
-    return copies
+    for view in views:
+        copies.append((view, buffer, 0, at, view.size) if into else (buffer, view, at, 0, view.size))
+        at += view.size
+    return buffer, copies
 
 
 def _control_step(wp: Any, mjw: Any, model: Any, data: Any, loads: Sequence[Copy], substeps: int,
@@ -236,10 +230,9 @@ class StreamEngine:
             lane = _Lane(bucket, size, model, data, stream=None, graphs=[], programs=[], sources=[], batched=ok)
             if exchange:
                 loaded = [getattr(model if owner == "model" else data, name) for owner, name in exchange_fields(ok)]
-                lane.inbox = wp.zeros(_word_count(wp, loaded), dtype=wp.float32)
-                lane.outbox = wp.zeros(_word_count(wp, [getattr(data, n) for n in STATE_FIELDS]), dtype=wp.float32)
-                lane.programs = [(_packed(wp, loaded, lane.inbox, into=True),
-                                  _packed(wp, [getattr(data, n) for n in STATE_FIELDS], lane.outbox, into=False))]
+                lane.inbox, loads = _exchange(wp, loaded, into=True)
+                lane.outbox, stores = _exchange(wp, [getattr(data, n) for n in STATE_FIELDS], into=False)
+                lane.programs = [(loads, stores)]
             else:
                 lane.sources = [wp.array(np.asarray(c, np.float32), dtype=float) for c in ctrls]
                 lane.programs = [([(_words(wp, data.ctrl), _words(wp, src), 0, 0, src.size)], [])
