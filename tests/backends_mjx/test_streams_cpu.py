@@ -94,6 +94,26 @@ def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
         Engine(buckets, [B] * len(buckets), "jax", streams=True)
 
 
+def test_the_first_half_takes_only_what_it_reads_and_names_what_it_was_not_given(buckets) -> None:
+    """The first half of a split tick takes no model leaf and of each bucket's data only the fields its resets
+    write and its lane loads (every array a call takes costs host time); a hook that reads another field there
+    fails on the first tick with that field's name, instead of reading a wrong value."""
+    from dojo.backends.mjx.batch import Hooks
+
+    engine = Engine(buckets, [B] * len(buckets), "warp", streams=True)
+    given = [engine._data_leaves[k] for k in engine._first_half_kept]
+    assert 0 < len(given) <= 10 * len(buckets) < len(engine._data_leaves)
+
+    class ReadsPoses(Hooks):
+        def control(self, arr, m, data, inputs):
+            return inputs + data.xpos[:, :1, 0], ()
+
+    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=ReadsPoses(), streams=True)
+    on = [np.ones(B, bool)] * len(buckets)
+    with pytest.raises(TypeError, match=r"data\.xpos: not given to the first half"):
+        engine.tick([np.zeros(B, np.int32)] * len(buckets), on, on, _controls(buckets))
+
+
 def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
     """On a GPU the engine steps once before it captures its graphs (a capture cannot load modules); the first
     tick must still start from the initial state."""

@@ -264,6 +264,26 @@ def _stable(tree: Tree, like: Tree, placement: Placement) -> Tree:
     return jax.tree.map(lambda x, s: placement.put_batched(np.asarray(x).astype(s.dtype)), tree, like)
 
 
+class _NotGiven:
+    """A model or data leaf the first half of a split tick is not given (`Engine`'s `streams`): it takes only the
+    data fields its resets write and its lanes load, and the varying model rows, because each array a jitted call
+    takes costs host time on every call. A hook that reads another field there fails at trace time with the
+    field's name, instead of reading a wrong value."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __repr__(self) -> str:
+        return (f"<{self.name}: not given to the first half of a split tick (backend.streams), which reads only "
+                f"the varying model rows and the data's {', '.join(RESET_FIELDS)}, mocap poses>")
+
+    def __getattr__(self, attr: str) -> Any:
+        raise AttributeError(f"{self!r} has no .{attr}")
+
+    def __getitem__(self, index: Any) -> Any:
+        raise TypeError(f"{self!r} cannot be indexed")
+
+
 class Engine:
     """The device side of the mjx backend: buckets' batches, their member indices, and the one jitted tick.
 
@@ -309,8 +329,8 @@ class Engine:
 
             self._physics = StreamPhysics(buckets, sizes)
             # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
-            self._before = jax.jit(self._flat(self._before_all, keeps_data=False), donate_argnums=(3,),
-                                   in_shardings=p.in_shardings(2, 6), out_shardings=p.batched)
+            self._before = jax.jit(self._flat(self._before_all, first_half=True), donate_argnums=(2,),
+                                   in_shardings=p.in_shardings(1, 6), out_shardings=p.batched)
             self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3),
                                   in_shardings=p.in_shardings(2, 9), out_shardings=p.batched)
         data = tuple(_initial_data(a, impl) for a in self.arrays)
@@ -329,9 +349,29 @@ class Engine:
         MuJoCo Warp data's 185 on the built-in tasks)."""
         self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
         self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
+        if self._physics is not None:
+            self._give_first_half(jax.tree_util.tree_flatten_with_path(data)[0])
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
+
+    def _give_first_half(self, data_paths: Sequence[tuple[Any, Any]]) -> None:
+        """What the first half of a split tick takes: of the data, the leaves of `FIRST_HALF_FIELDS` (positions in
+        `_first_half_leaves`, in the kept leaves' list at `_first_half_kept`); every other leaf, and every model
+        leaf, stands in as `_NotGiven` (the varying model rows come from the tables, `_gathered`)."""
+        from dojo.backends.mjx.streams import LOADED_FIELDS
+
+        wanted = set(RESET_FIELDS) | set(LOADED_FIELDS)
+        names = [jax.tree_util.keystr(path[1:], simple=True, separator=".") for path, _ in data_paths]
+        self._first_half_leaves = [k for k, name in enumerate(names)
+                                   if name in wanted and k not in self._data_empty]
+        kept = [k for k in range(len(names)) if k not in self._data_empty]
+        self._first_half_kept = [kept.index(k) for k in self._first_half_leaves]
+        self._absent_data = [np.zeros(self._data_empty[k].shape, self._data_empty[k].dtype)
+                             if k in self._data_empty else _NotGiven(f"data.{name}") for k, name in enumerate(names)]
+        model_paths = jax.tree_util.tree_flatten_with_path(self._models())[0]
+        self._absent_models = [_NotGiven("model." + jax.tree_util.keystr(path[1:], simple=True, separator="."))
+                               for path, _ in model_paths]
 
     @property
     def data(self) -> tuple[Tree, ...]:
@@ -347,21 +387,33 @@ class Engine:
         return [make(self._data_empty[k]) if k in self._data_empty else next(rest)
                 for k in range(self._data_def.num_leaves)]
 
-    def _flat(self, fn: Callable[..., tuple], keeps_data: bool = True) -> Callable[..., tuple]:
+    def _flat(self, fn: Callable[..., tuple], first_half: bool = False) -> Callable[..., tuple]:
         """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
-        those four trees' leaves returning (data leaves, extra leaves, per bucket rest); without `keeps_data`, `fn`
-        returns per bucket (extra, *rest) and the function (extra leaves, per bucket rest).
+        those four trees' leaves returning (data leaves, extra leaves, per bucket rest). With `first_half` (the
+        first half of a split tick), the function takes no model leaves and of the data only the leaves at
+        `self._first_half_leaves`, the others stand in as `_NotGiven`, and `fn` returns per bucket (extra, *rest):
+        the function (extra leaves, per bucket rest).
 
         Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
         on every call of a jitted function, hashing each NumPy field of a model (about 7 ms a call on the CI
         machine; on an H200 it held the GPU idle for most of a split tick's halves). Lists of arrays flatten in C++;
-        the trees are rebuilt inside the trace, where it costs nothing per call."""
-        def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
-            rows = self.placement.count  # under `per_device` each device holds its share of every batch's rows
-            data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
+        the trees are rebuilt inside the trace, where it costs nothing per call. And every array a call takes is
+        handled on the host whatever its size (some 290 per bucket: 136 model leaves, ~150 data leaves), which is
+        why the first half takes only the few it reads."""
+        def flat(*leaves_in: Any) -> tuple:
+            if first_half:
+                (tables, given, extra), args = leaves_in[:3], leaves_in[3:]
+                models = self._absent_models
+                data = list(self._absent_data)
+                for k, x in zip(self._first_half_leaves, given):
+                    data[k] = x
+            else:
+                (models, tables, data, extra), args = leaves_in[:4], leaves_in[4:]
+                rows = self.placement.count  # under `per_device` each device holds its share of every batch's rows
+                data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            kept = (("data", self._data_def),) if keeps_data else ()
+            kept = () if first_half else (("data", self._data_def),)
             leaves = []
             for k, (what, structure) in enumerate((*kept, ("extra state", self._extra_def))):
                 found, made = jax.tree.flatten(tuple(o[k] for o in out))
@@ -432,7 +484,8 @@ class Engine:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
         times = [time.perf_counter()]
-        extra, before = wait_for(call(self._before, models, tables, data, extra, members, resets, stepping, inputs))
+        given = [data[k] for k in self._first_half_kept]
+        extra, before = wait_for(call(self._before, tables, given, extra, members, resets, stepping, inputs))
         times.append(time.perf_counter())
         states = self._physics.step([b[2] for b in before])
         times.append(time.perf_counter())
