@@ -94,15 +94,17 @@ def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
         Engine(buckets, [B] * len(buckets), "jax", streams=True)
 
 
-def test_the_first_half_takes_only_what_it_reads_and_names_what_it_was_not_given(buckets) -> None:
-    """The first half of a split tick takes no model leaf and of each bucket's data only the fields its resets
-    write and its lane loads (every array a call takes costs host time); a hook that reads another field there
-    fails on the first tick with that field's name, instead of reading a wrong value."""
+def test_the_halves_take_only_what_they_read_and_name_what_they_were_not_given(buckets) -> None:
+    """The halves of a split tick take no model leaf and of each bucket's data only what they read: the first
+    the fields its resets write and its lane loads, the second what the lanes do not return (every array a call
+    takes costs host time); a hook that reads another field there fails on the first tick with that field's name,
+    instead of reading a wrong value."""
     from dojo.backends.mjx.batch import Hooks
 
     engine = Engine(buckets, [B] * len(buckets), "warp", streams=True)
-    given = [engine._data_leaves[k] for k in engine._first_half_kept]
-    assert 0 < len(given) <= 10 * len(buckets) < len(engine._data_leaves)
+    first, second = engine._halves_kept
+    assert 0 < len(first) <= 10 * len(buckets) < len(engine._data_leaves)
+    assert len(second) <= 2 * len(buckets)  # fields of other widths (`eq_active`) and MJX's own token
 
     class ReadsPoses(Hooks):
         def control(self, arr, m, data, inputs):

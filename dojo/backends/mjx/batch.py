@@ -322,17 +322,8 @@ class Engine:
         p = self.placement  # models and tables replicated, the other 7 arguments split along the env axis
         self._tick = jax.jit(p.per_device(self._flat(self._tick_all), 2, 7), donate_argnums=(2, 3),
                              in_shardings=p.in_shardings(2, 7), out_shardings=p.batched)
-        if streams:
-            if impl != "warp" or p.count != 1:
-                raise ValueError("backend.streams runs MuJoCo Warp on one device: it needs impl=warp and devices=1")
-            from dojo.backends.mjx.streams import StreamPhysics
-
-            self._physics = StreamPhysics(buckets, sizes)
-            # laid out like `_tick`'s arguments and outputs, so that the state's types stay a fixed point
-            self._before = jax.jit(self._flat(self._before_all, first_half=True), donate_argnums=(2,),
-                                   in_shardings=p.in_shardings(1, 6), out_shardings=p.batched)
-            self._after = jax.jit(self._flat(self._after_all), donate_argnums=(2, 3),
-                                  in_shardings=p.in_shardings(2, 9), out_shardings=p.batched)
+        if streams and (impl != "warp" or p.count != 1):
+            raise ValueError("backend.streams runs MuJoCo Warp on one device: it needs impl=warp and devices=1")
         data = tuple(_initial_data(a, impl) for a in self.arrays)
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
@@ -349,29 +340,47 @@ class Engine:
         MuJoCo Warp data's 185 on the built-in tasks)."""
         self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
         self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
-        if self._physics is not None:
-            self._give_first_half(jax.tree_util.tree_flatten_with_path(data)[0])
+        if streams:
+            self._split(buckets, sizes, jax.tree_util.tree_flatten_with_path(data)[0])
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
 
-    def _give_first_half(self, data_paths: Sequence[tuple[Any, Any]]) -> None:
-        """What the first half of a split tick takes: of the data, the leaves of `FIRST_HALF_FIELDS` (positions in
-        `_first_half_leaves`, in the kept leaves' list at `_first_half_kept`); every other leaf, and every model
-        leaf, stands in as `_NotGiven` (the varying model rows come from the tables, `_gathered`)."""
-        from dojo.backends.mjx.streams import LOADED_FIELDS
+    def _split(self, buckets: Sequence[Bucket], sizes: Sequence[int], data_paths: Sequence[tuple[Any, Any]]
+               ) -> None:
+        """The split tick (`streams`): the lanes (`StreamPhysics`), told which data leaves the tick keeps, and the
+        two jitted halves, which take no model leaf and of the data only what they read: the first half the
+        fields its resets write and its lanes load (`RESET_FIELDS`, `LOADED_FIELDS`), the second half what the
+        lanes do not return (fields of other widths such as `eq_active`, which no tick changes). Every other
+        leaf stands in as `_NotGiven` (the varying model rows come from the tables, `_gathered`)."""
+        from dojo.backends.mjx.streams import LOADED_FIELDS, StreamPhysics
 
-        wanted = set(RESET_FIELDS) | set(LOADED_FIELDS)
         names = [jax.tree_util.keystr(path[1:], simple=True, separator=".") for path, _ in data_paths]
-        self._first_half_leaves = [k for k, name in enumerate(names)
-                                   if name in wanted and k not in self._data_empty]
+        bucket_of = [path[0].idx for path, _ in data_paths]
         kept = [k for k in range(len(names)) if k not in self._data_empty]
-        self._first_half_kept = [kept.index(k) for k in self._first_half_leaves]
+        stable = dict(zip(kept, self._data_leaves))
+        words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
+                 for b in range(len(buckets))]
+        self._physics = StreamPhysics(buckets, sizes, words)
+        self._returned_like = [[jax.ShapeDtypeStruct(stable[k].shape, stable[k].dtype) for name in returned
+                                for k in kept if bucket_of[k] == b and names[k] == name]
+                               for b, returned in enumerate(self._physics.returned)]
+        """Per bucket, the shape and dtype of each leaf its lane returns, in its outbox's order."""
+        wanted = set(RESET_FIELDS) | set(LOADED_FIELDS)
+        first = [k for k in kept if names[k] in wanted]
+        second = [k for k in kept if names[k] not in self._physics.returned[bucket_of[k]]]
         self._absent_data = [np.zeros(self._data_empty[k].shape, self._data_empty[k].dtype)
                              if k in self._data_empty else _NotGiven(f"data.{name}") for k, name in enumerate(names)]
         model_paths = jax.tree_util.tree_flatten_with_path(self._models())[0]
         self._absent_models = [_NotGiven("model." + jax.tree_util.keystr(path[1:], simple=True, separator="."))
                                for path, _ in model_paths]
+        self._halves_kept = [[kept.index(k) for k in given] for given in (first, second)]
+        """Per half, the positions in the kept data leaves of those it takes."""
+        p = self.placement  # laid out like `_tick`'s arguments and outputs, so that the types stay a fixed point
+        self._before = jax.jit(self._flat(self._before_all, given=first, returns_data=False), donate_argnums=(2,),
+                               in_shardings=p.in_shardings(1, 6), out_shardings=p.batched)
+        self._after = jax.jit(self._flat(self._after_all, given=second), donate_argnums=(1, 2),
+                              in_shardings=p.in_shardings(1, 8), out_shardings=p.batched)
 
     @property
     def data(self) -> tuple[Tree, ...]:
@@ -387,25 +396,26 @@ class Engine:
         return [make(self._data_empty[k]) if k in self._data_empty else next(rest)
                 for k in range(self._data_def.num_leaves)]
 
-    def _flat(self, fn: Callable[..., tuple], first_half: bool = False) -> Callable[..., tuple]:
+    def _flat(self, fn: Callable[..., tuple], given: Sequence[int] | None = None, returns_data: bool = True
+              ) -> Callable[..., tuple]:
         """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
-        those four trees' leaves returning (data leaves, extra leaves, per bucket rest). With `first_half` (the
-        first half of a split tick), the function takes no model leaves and of the data only the leaves at
-        `self._first_half_leaves`, the others stand in as `_NotGiven`, and `fn` returns per bucket (extra, *rest):
-        the function (extra leaves, per bucket rest).
+        those four trees' leaves returning (data leaves, extra leaves, per bucket rest). With `given` (a half of a
+        split tick), the function takes no model leaves and of the data only the leaves at those positions (of
+        all the data's leaves), the others stand in as `_NotGiven`; without `returns_data`, `fn` returns per
+        bucket (extra, *rest) and the function (extra leaves, per bucket rest).
 
         Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
         on every call of a jitted function, hashing each NumPy field of a model (about 7 ms a call on the CI
         machine; on an H200 it held the GPU idle for most of a split tick's halves). Lists of arrays flatten in C++;
         the trees are rebuilt inside the trace, where it costs nothing per call. And every array a call takes is
         handled on the host whatever its size (some 290 per bucket: 136 model leaves, ~150 data leaves), which is
-        why the first half takes only the few it reads."""
+        why the halves take only the few they read."""
         def flat(*leaves_in: Any) -> tuple:
-            if first_half:
-                (tables, given, extra), args = leaves_in[:3], leaves_in[3:]
+            if given is not None:
+                (tables, taken, extra), args = leaves_in[:3], leaves_in[3:]
                 models = self._absent_models
                 data = list(self._absent_data)
-                for k, x in zip(self._first_half_leaves, given):
+                for k, x in zip(given, taken):
                     data[k] = x
             else:
                 (models, tables, data, extra), args = leaves_in[:4], leaves_in[4:]
@@ -413,7 +423,7 @@ class Engine:
                 data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            kept = () if first_half else (("data", self._data_def),)
+            kept = (("data", self._data_def),) if returns_data else ()
             leaves = []
             for k, (what, structure) in enumerate((*kept, ("extra state", self._extra_def))):
                 found, made = jax.tree.flatten(tuple(o[k] for o in out))
@@ -444,53 +454,53 @@ class Engine:
 
     def _before_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                     stepping: tuple, inputs: tuple) -> tuple:
-        """The tick up to the physics (`streams`): per bucket the extra state, the fields the resets wrote
-        (`RESET_FIELDS`), the controls' aux outputs and what its lane loads (`streams.exchange_fields`: the
-        controls, the state, and the environments' rows of the varying model fields) packed into one flat array.
+        """The tick up to the physics (`streams`): per bucket the extra state, the controls' aux outputs and what
+        its lane loads (`streams.exchange_fields`: the controls, the state after the resets, the environments'
+        rows of the varying model fields, which environments step) packed into one flat array.
 
-        Why not the whole data: a bucket's MuJoCo Warp data is some 185 arrays, each an output to hand back and an
-        input to donate; the second half takes the data as it was and these few fields."""
+        Why not the data: a bucket's MuJoCo Warp data is some 185 arrays, each an output to hand back; the lane
+        takes the resets' state with the rest and returns the whole data."""
         from dojo.backends.mjx.streams import exchange_fields, pack_words
 
         out = []
         for a, mx, table, d, e, member, reset, step, given, batched in zip(
                 self.arrays, mxs, tables, data, extra, members, resets, stepping, inputs, self._physics.batched):
             a, m, rows = _gathered(a, mx, table, member)
-            d, driven, e, aux = _before_physics(a, self.hooks, m, table, d, e, member, reset, step, given)
-            words = pack_words([getattr(driven, name) if owner == "data" else rows[name]
-                                for owner, name in exchange_fields(batched)])
-            out.append((e, {name: getattr(d, name) for name in RESET_FIELDS}, aux, words))
+            _, driven, e, aux = _before_physics(a, self.hooks, m, table, d, e, member, reset, step, given)
+            lane = {"data": lambda name: getattr(driven, name), "model": rows.__getitem__,
+                    "lane": lambda _: step.astype(jnp.int32)}
+            out.append((e, aux, pack_words([lane[owner](name) for owner, name in exchange_fields(batched)])))
         return tuple(out)
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
-                   stepping: tuple, reset_fields: tuple, aux: tuple, steps: tuple, states: tuple) -> tuple:
-        """The tick after the physics (`streams`): each bucket's data as the last tick left it with the fields its
-        resets wrote (`reset_fields`) and its stepped `STATE_FIELDS` (`states`, its lane's outbox) brought up to date
-        and observed, as `_bucket_tick` does after its own physics; the other fields are those of before the
-        physics until `Hooks.refresh` recomputes them (see the class docstring)."""
+                   stepping: tuple, aux: tuple, steps: tuple, outboxes: tuple) -> tuple:
+        """The tick after the physics (`streams`): each bucket's data as its lane returns it (`outboxes`: stepped,
+        the environments that do not step put back, and brought up to date by a forward, as `_after_physics`
+        does with the backend's `Hooks.refresh`) and observed."""
         from dojo.backends.mjx.streams import unpack_words
 
         out = []
-        for a, mx, table, d, e, member, reset, step, written, x, k, state in zip(
-                self.arrays, mxs, tables, data, extra, members, resets, stepping, reset_fields, aux, steps, states):
+        for a, mx, table, d, e, member, reset, step, x, k, words, returned, like in zip(
+                self.arrays, mxs, tables, data, extra, members, resets, stepping, aux, steps, outboxes,
+                self._physics.returned, self._returned_like):
             a, m, _ = _gathered(a, mx, table, member)
-            d = d.replace(**written)
-            stepped = d.replace(**dict(zip(STATE_FIELDS, unpack_words(state, [getattr(d, n) for n in STATE_FIELDS]))))
-            out.append(_after_physics(a, self.hooks, m, d, stepped, e, member, reset, step, x, k))
+            d = d.tree_replace(dict(zip(returned, unpack_words(words, like))))
+            e, outputs = self.hooks.observe(a, m, d, e, member, reset, step, x, k)
+            out.append((d, e, outputs))
         return tuple(out)
 
     def _split_tick(self, call: Callable[..., Any], models: list, tables: list, data: list, extra: list,
                     members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
         (the halves through `call`, as `tick` calls the one jitted tick)."""
+        first, second = ([data[k] for k in kept] for kept in self._halves_kept)
         times = [time.perf_counter()]
-        given = [data[k] for k in self._first_half_kept]
-        extra, before = wait_for(call(self._before, tables, given, extra, members, resets, stepping, inputs))
+        extra, before = wait_for(call(self._before, tables, first, extra, members, resets, stepping, inputs))
         times.append(time.perf_counter())
-        states = self._physics.step([b[2] for b in before])
+        outboxes = self._physics.step([b[1] for b in before])
         times.append(time.perf_counter())
-        out = wait_for(call(self._after, models, tables, data, extra, members, resets, stepping,
-                            tuple(b[0] for b in before), tuple(b[1] for b in before), steps, tuple(states)))
+        out = wait_for(call(self._after, tables, second, extra, members, resets, stepping,
+                            tuple(b[0] for b in before), steps, tuple(outboxes)))
         times.append(time.perf_counter())
         if self.split_ms is not None:
             for kept, start, end in zip(self.split_ms.values(), times, times[1:]):

@@ -89,34 +89,73 @@ def _exchange(wp: Any, arrays: Sequence[Any], into: bool) -> tuple[Any, list[Cop
     return buffer, copies
 
 
-def _control_step(wp: Any, mjw: Any, model: Any, data: Any, loads: Sequence[Copy], substeps: int,
-                  stores: Sequence[Copy]) -> None:
-    """The copies in (the controls; under `StreamPhysics` every field a tick loads), `substeps` physics steps, the
-    copies out (under `StreamPhysics` the new state): one tick of one bucket."""
-    for copy in loads:
+@dataclass
+class _Program:
+    """What a lane's graph runs for one control input: the copies in (the controls; under `StreamPhysics` every
+    field a tick loads), the sub-steps, then with `restores` the state of the worlds that do not step put back
+    (`lane_kernels.keep_unstepped`'s arguments, one launch per state field) and a forward at the state each world
+    holds, and the copies out (under `StreamPhysics` every field the tick returns)."""
+
+    loads: list[Copy]
+    stores: list[Copy] = dataclasses.field(default_factory=list)
+    restores: list[tuple[Any, int, Any, Any]] = dataclasses.field(default_factory=list)
+
+
+def _control_step(wp: Any, mjw: Any, model: Any, data: Any, program: _Program, substeps: int) -> None:
+    """One tick of one bucket: `program` around `substeps` physics steps."""
+    for copy in program.loads:
         wp.copy(*copy)
     for _ in range(substeps):
         mjw.step(model, data)
-    for copy in stores:
+    if program.restores:
+        from dojo.backends.mjx.lane_kernels import keep_unstepped
+
+        for stepping, width, field, saved in program.restores:
+            wp.launch(keep_unstepped, dim=field.size, inputs=[stepping, width, field, saved])
+        mjw.forward(model, data)
+    for copy in program.stores:
         wp.copy(*copy)
 
 
-def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, loads: Sequence[Copy], substeps: int,
-             stores: Sequence[Copy]) -> Any:
+def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Program, substeps: int) -> Any:
     """One CUDA graph of `_control_step`, captured with Python's garbage collector held back (`capture`: nothing
     may be freed while a stream captures)."""
     with collector_held(), wp.ScopedCapture(stream=stream, force_module_load=False) as capture:
-        _control_step(wp, mjw, model, data, loads, substeps, stores)
+        _control_step(wp, mjw, model, data, program, substeps)
     return capture.graph
 
 
 def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any) -> None:
-    """One physics step, so that every kernel the graphs will hold is loaded (compiled on a cold cache: a capture
-    cannot load modules), with the state put back afterwards: the first tick starts from the initial state."""
+    """One physics step and one forward, so that every kernel the graphs will hold is loaded (compiled on a cold
+    cache: a capture cannot load modules), with the state put back afterwards: the first tick starts from the
+    initial state."""
+    from dojo.backends.mjx import lane_kernels
+
+    wp.load_module(lane_kernels, device=data.qpos.device)
     kept = {name: wp.clone(getattr(data, name)) for name in STATE_FIELDS}
     mjw.step(model, data)
+    mjw.forward(model, data)
     for name, value in kept.items():
         wp.copy(getattr(data, name), value)
+
+
+def lane_array(wp: Any, data: Any, name: str) -> Any:
+    """The MuJoCo Warp data array behind an MJX data leaf named as `jax.tree_util.keystr` names it (`qpos`,
+    `_impl.M`, `_impl.contact__geom`: MJX flattens MuJoCo Warp's nested structs with `__`), None if it has none."""
+    found = data
+    for part in name.removeprefix("_impl.").split("__"):
+        found = getattr(found, part, None)
+    return found if isinstance(found, wp.array) else None
+
+
+def _returnable(wp: Any, array: Any, words: int) -> bool:
+    """Whether a lane can hand `words` 32-bit words of an MJX leaf back from `array` (contiguous, 32-bit scalars,
+    the same count: MJX's and MuJoCo Warp's layouts agree on every such field, checked rather than assumed)."""
+    if array is None or not array.is_contiguous:
+        return False
+    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
+    return (wp.types.type_size_in_bytes(scalar) == 4
+            and array.size * wp.types.type_size_in_bytes(array.dtype) // 4 == words)
 
 
 @dataclass
@@ -130,9 +169,9 @@ class _Lane:
     data: Any
     stream: Any
     graphs: list[Any]
-    programs: list[tuple[list[Copy], list[Copy]]]
-    """Per control input, the copies before and after the sub-steps (the graphs hold the addresses they name:
-    those buffers live as long as the lane)."""
+    programs: list[_Program]
+    """Per control input, what runs around the sub-steps (the graphs hold the addresses it names: those buffers
+    live as long as the lane)."""
     sources: list[Any]
     """The control batches the copies in read, without `exchange`."""
     batched: tuple[str, ...]
@@ -140,7 +179,12 @@ class _Lane:
     inbox: Any = None
     """With `exchange`: the flat words a tick loads (`exchange_fields`' order), one copy from the first half."""
     outbox: Any = None
-    """With `exchange`: the flat words of the stepped `STATE_FIELDS`, which the second half reads."""
+    """With `exchange`: the flat words of the `returned` fields after the sub-steps and a forward, which the
+    second half reads."""
+    returned: tuple[str, ...] = ()
+    """With `exchange`: the MJX data leaves (named as `lane_array` takes them) the outbox holds, in its order."""
+    stepping: Any = None
+    """With `exchange`: int32 per world, whether its environment steps this tick (loaded with the inbox)."""
 
 
 LOADED_FIELDS = tuple(name for name in STATE_FIELDS if name != "ctrl") + ("mocap_pos", "mocap_quat", "geom_xpos",
@@ -151,8 +195,10 @@ poses and the geom poses (a reset sets fixtures' poses, which MuJoCo Warp's step
 
 def exchange_fields(batched: Sequence[str]) -> tuple[tuple[str, str], ...]:
     """What a tick loads into a lane with `exchange`, in its inbox's order: ("data", name) for the controls and
-    `LOADED_FIELDS`, ("model", name) for the environments' rows of the batched varying fields `batched`."""
-    return (("data", "ctrl"), *(("data", name) for name in LOADED_FIELDS), *(("model", name) for name in batched))
+    `LOADED_FIELDS`, ("model", name) for the environments' rows of the batched varying fields `batched`, and
+    ("lane", "stepping"), whether each environment steps (int32)."""
+    return (("data", "ctrl"), *(("data", name) for name in LOADED_FIELDS), *(("model", name) for name in batched),
+            ("lane", "stepping"))
 
 
 def pack_words(arrays: Sequence[Any]) -> Any:
@@ -166,10 +212,13 @@ def pack_words(arrays: Sequence[Any]) -> Any:
 
 
 def unpack_words(words: Any, like: Sequence[Any]) -> list[Any]:
-    """A lane's outbox (flat float32 words, end to end) as arrays shaped like `like`, converted to their dtypes."""
+    """A lane's outbox (flat float32 words, end to end) as arrays shaped like `like`, of their 32-bit dtypes with
+    their bits kept (`pack_words` undone)."""
+    import jax
+
     out, at = [], 0
     for a in like:
-        out.append(words[at:at + a.size].reshape(a.shape).astype(a.dtype))
+        out.append(jax.lax.bitcast_convert_type(words[at:at + a.size], a.dtype).reshape(a.shape))
         at += a.size
     return out
 
@@ -184,11 +233,13 @@ class StreamEngine:
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
-                 serial: bool = False, device: str | None = None, exchange: bool = False) -> None:
+                 serial: bool = False, device: str | None = None,
+                 exchange: Sequence[dict[str, int]] | None = None) -> None:
         """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one). `exchange`
-        (`StreamPhysics`): each lane loads every field of `exchange_fields` from its inbox and stores its new
-        `STATE_FIELDS` in its outbox, inside its graph, so that a tick moves one buffer each way per bucket;
-        `controls` is then unused."""
+        (`StreamPhysics`), per bucket {MJX data leaf name: its words}: each lane loads every field of
+        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step, runs a forward
+        and stores each of those leaves it holds (`lane_array`, `_returnable`) in its outbox, all inside its graph,
+        so that a tick moves one buffer each way per bucket; `controls` is then unused."""
         import warp as wp
         from mujoco.mjx.third_party import mujoco_warp as mjw
 
@@ -202,14 +253,14 @@ class StreamEngine:
             self._build(buckets, sizes, controls, serial, exchange)
 
     def _build(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
-               serial: bool, exchange: bool) -> None:
+               serial: bool, exchange: Sequence[dict[str, int]] | None) -> None:
         """One lane per bucket on the current Warp device (see the class docstring)."""
         wp, mjw = self.wp, self.mjw
         self.on_gpu = self.device.is_cuda
         self.unbatched: dict[str, tuple[str, ...]] = {}
         shared = wp.Stream() if serial and self.on_gpu else None
         self.lanes: list[_Lane] = []
-        for bucket, size, ctrls in zip(buckets, sizes, controls):
+        for k, (bucket, size, ctrls) in enumerate(zip(buckets, sizes, controls)):
             ok, skipped = batchable_fields(bucket.varying)
             if skipped:
                 self.unbatched[bucket.key] = skipped
@@ -228,14 +279,11 @@ class StreamEngine:
             data.geom_xpos.assign(xpos[member].astype(np.float32))
             data.geom_xmat.assign(xmat[member].astype(np.float32))
             lane = _Lane(bucket, size, model, data, stream=None, graphs=[], programs=[], sources=[], batched=ok)
-            if exchange:
-                loaded = [getattr(model if owner == "model" else data, name) for owner, name in exchange_fields(ok)]
-                lane.inbox, loads = _exchange(wp, loaded, into=True)
-                lane.outbox, stores = _exchange(wp, [getattr(data, n) for n in STATE_FIELDS], into=False)
-                lane.programs = [(loads, stores)]
+            if exchange is not None:
+                self._exchanging(lane, exchange[k])
             else:
                 lane.sources = [wp.array(np.asarray(c, np.float32), dtype=float) for c in ctrls]
-                lane.programs = [([(_words(wp, data.ctrl), _words(wp, src), 0, 0, src.size)], [])
+                lane.programs = [_Program([(_words(wp, data.ctrl), _words(wp, src), 0, 0, src.size)])
                                  for src in lane.sources]
             if self.on_gpu:
                 lane.stream = shared or wp.Stream()
@@ -243,10 +291,32 @@ class StreamEngine:
                     if lane.sources:
                         wp.copy(data.ctrl, lane.sources[0])
                     _load_kernels(wp, mjw, model, data)
-                    lane.graphs = [_capture(wp, mjw, lane.stream, model, data, loads, bucket.n_substeps, stores)
-                                   for loads, stores in lane.programs]
+                    lane.graphs = [_capture(wp, mjw, lane.stream, model, data, program, bucket.n_substeps)
+                                   for program in lane.programs]
             self.lanes.append(lane)
         self.synchronize()
+
+    def _exchanging(self, lane: _Lane, leaves: dict[str, int]) -> None:
+        """`lane`'s inbox, outbox and program under `exchange`: `leaves` are the MJX data leaves (name: words) the
+        tick keeps; the outbox holds those the lane has (`lane.returned`)."""
+        wp = self.wp
+        lane.stepping = wp.zeros(lane.size, dtype=wp.int32)
+        owners = {"model": lane.model, "data": lane.data}
+        loaded = [lane.stepping if owner == "lane" else getattr(owners[owner], name)
+                  for owner, name in exchange_fields(lane.batched)]
+        lane.inbox, loads = _exchange(wp, loaded, into=True)
+        at, restores = 0, []
+        for (owner, name), array in zip(exchange_fields(lane.batched), loaded):
+            words = _words(wp, array) if array.size else None
+            if owner == "data" and name in STATE_FIELDS and words is not None:
+                saved = wp.array(ptr=lane.inbox.ptr + 4 * at, dtype=wp.float32, shape=(words.size,),
+                                 device=lane.inbox.device, copy=False)
+                restores.append((lane.stepping, words.size // lane.size, words, saved))
+            at += words.size if words is not None else 0
+        lane.returned = tuple(name for name, words in leaves.items()
+                              if _returnable(wp, lane_array(wp, lane.data, name), words))
+        lane.outbox, stores = _exchange(wp, [lane_array(wp, lane.data, n) for n in lane.returned], into=False)
+        lane.programs = [_Program(loads, stores, restores)]
 
     def tick(self, j: int = 0) -> None:
         """Launch one control step of every bucket (its j-th control batch); returns before the GPU finishes."""
@@ -254,9 +324,9 @@ class StreamEngine:
             if lane.graphs:
                 self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
             else:
-                loads, stores = lane.programs[j % len(lane.programs)]
                 with self.wp.ScopedDevice(self.device):
-                    _control_step(self.wp, self.mjw, lane.model, lane.data, loads, lane.bucket.n_substeps, stores)
+                    _control_step(self.wp, self.mjw, lane.model, lane.data, lane.programs[j % len(lane.programs)],
+                                  lane.bucket.n_substeps)
 
     def synchronize(self) -> None:
         """Wait for every stream (ticks return as soon as the graphs are launched)."""
@@ -318,26 +388,33 @@ class StreamPhysics:
     overlaps them (3.7x the same graphs on one stream: the 24-task mix at 4,096 environments, H200). So a tick
     becomes: a jitted half that resets, acts and writes the controls (`batch._before_physics`) and packs what each
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
-    the lanes' graphs (each moves its inbox into the fields, steps, and stores the new state in its outbox); and a
-    jitted half that reads the outboxes back (one DLPack view each, no copy), brings the derived quantities up to
-    date and observes (`batch._after_physics`). The host waits for the first half before it launches the lanes,
-    and for the lanes before the second half, so each side reads only finished buffers.
+    the lanes' graphs (each moves its inbox into the fields, steps, puts back the state of the environments that
+    do not step, runs a forward, and stores the data in its outbox); and a jitted half that reads the outboxes
+    back (one DLPack view each, no copy) and observes. The host waits for the first half before it launches the
+    lanes, and for the lanes before the second half, so each side reads only finished buffers.
+
+    Why the forward runs in the lanes: as a jitted call's `Hooks.refresh` it was one MJX Warp call per bucket,
+    each a Python callback on the host (2.3-2.9 ms each on an H200 host, 2026-12-02: the second half cost 72 ms
+    of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels.
     """
 
-    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int]) -> None:
+    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], leaves: Sequence[dict[str, int]]) -> None:
         """The lanes on the device JAX computes on (Warp's CPU device where JAX runs on the CPU, even on a host
-        with a GPU), so that the halves and the lanes exchange buffers of one device."""
+        with a GPU), so that the halves and the lanes exchange buffers of one device. `leaves`, per bucket: the
+        MJX data leaves the tick keeps, name: words (`StreamEngine`'s `exchange`)."""
         import jax
 
         device = "cpu" if jax.default_backend() == "cpu" else None
-        self.engine = StreamEngine(buckets, sizes, [[] for _ in buckets], device=device, exchange=True)
+        self.engine = StreamEngine(buckets, sizes, [[] for _ in buckets], device=device, exchange=leaves)
         self.batched = [lane.batched for lane in self.engine.lanes]
         """Per bucket, the varying model fields its lane loads each tick (`exchange_fields`)."""
+        self.returned = [lane.returned for lane in self.engine.lanes]
+        """Per bucket, the data leaves its outbox holds, in order."""
 
     def step(self, inboxes: Sequence[Any]) -> list[Any]:
         """One control step of every bucket from `inboxes[k]`, the flat words of its `exchange_fields`
-        (`pack_words`, a JAX array); returns each bucket's stepped `STATE_FIELDS` as flat words (`unpack_words`),
-        JAX arrays that view the lanes' outboxes (valid until the next step).
+        (`pack_words`, a JAX array); returns each bucket's `returned` leaves after the step and a forward as flat
+        words (`unpack_words`), JAX arrays that view the lanes' outboxes (valid until the next step).
 
         Why one buffer each way: loading a dozen fields per bucket through their own DLPack views cost about
         16 ms a tick at six buckets on an H200 host (2026-12-02, a `jax.profiler` trace); the fields now move
