@@ -11,7 +11,9 @@
 - `features`: which of a plan's `requires` this backend cannot run, and why;
 - `sharding`: `Placement`, every bucket's batch split over the local devices (one process, several GPUs);
 - `streams`: `StreamEngine`, each bucket's MuJoCo Warp physics on its own CUDA stream (`dojo bench sim` mode),
-  and `StreamPhysics`, the same for `Engine`'s ticks (`backend.streams`).
+  and `StreamPhysics`, the same for `Engine`'s ticks (`backend.streams`);
+- `lane_kernels`: the Warp kernels a lane's graph runs besides MuJoCo Warp's (the unstepped environments' state
+  put back).
 """
 
 from __future__ import annotations

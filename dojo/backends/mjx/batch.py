@@ -180,7 +180,8 @@ class Hooks:
 
     def refresh(self, m: Tree, d: Tree) -> Tree:
         """One environment's derived quantities brought up to date with its new state after the sub-steps, for
-        `observe` (traced per environment under `vmap`). Kinematics only by default: all the benchmark reads."""
+        `observe` (traced per environment under `vmap`). Kinematics only by default: all the benchmark reads.
+        Under `Engine`'s `streams` the lanes run a full forward instead (`streams.StreamPhysics`)."""
         return mjx.kinematics(m, d)
 
     def init_extra(self, arr: BucketArrays) -> Tree:
@@ -300,9 +301,10 @@ class Engine:
 
     `streams` (warp, one device): the physics runs between two jitted halves of the tick, every bucket on its own
     CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
-    when its outputs are computed. What the physics derives besides the state (contacts, constraint forces,
-    sensors) is not carried across: `Hooks.refresh` recomputes what `observe` reads (the backend's does, with a
-    full forward under `warp`; the default's kinematics serve the benchmark, which observes nothing).
+    when its outputs are computed. Each lane ends its tick with MuJoCo Warp's full forward at the state every
+    environment holds, which takes the place of `Hooks.refresh` (the backend's is that forward; the default's
+    kinematics are part of it), and returns its whole data. The halves take no model leaf and only the data
+    leaves they read (`_split`).
     """
 
     _physics: Any = None
