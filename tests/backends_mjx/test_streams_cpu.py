@@ -94,25 +94,24 @@ def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
         Engine(buckets, [B] * len(buckets), "jax", streams=True)
 
 
-def test_the_halves_take_only_what_they_read_and_name_what_they_were_not_given(buckets) -> None:
-    """The halves of a split tick take no model leaf and of each bucket's data only what they read: the first
-    the fields its resets write and its lane loads, the second what the lanes do not return (every array a call
-    takes costs host time); a hook that reads another field there fails on the first tick with that field's name,
+def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_not_given(buckets) -> None:
+    """Between ticks each bucket's data is its lane's words (one array), which both halves take instead of some
+    150 data and 136 model leaves (every array a call takes costs host time); `Engine.data` unpacks them when read.
+    A hook that reads a model field other than the varying rows fails on the first tick with that field's name,
     instead of reading a wrong value."""
     from dojo.backends.mjx.batch import Hooks
 
-    engine = Engine(buckets, [B] * len(buckets), "warp", streams=True)
-    first, second = engine._halves_kept
-    assert 0 < len(first) <= 10 * len(buckets) < len(engine._data_leaves)
-    assert len(second) <= 2 * len(buckets)  # fields of other widths (`eq_active`) and MJX's own token
+    engine = _run_engine(buckets, streams=True)
+    assert len(engine._words) == len(buckets) and engine._data_leaves is None
+    assert engine.data[0].qpos.shape == (B, buckets[0].model.nq) and engine._data_leaves is not None
 
-    class ReadsPoses(Hooks):
+    class ReadsMasses(Hooks):
         def control(self, arr, m, data, inputs):
-            return inputs + data.xpos[:, :1, 0], ()
+            return inputs * m.body_mass[1], ()
 
-    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=ReadsPoses(), streams=True)
+    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=ReadsMasses(), streams=True)
     on = [np.ones(B, bool)] * len(buckets)
-    with pytest.raises(TypeError, match=r"data\.xpos: not given to the first half"):
+    with pytest.raises(TypeError, match=r"model\.body_mass: not given to the halves"):
         engine.tick([np.zeros(B, np.int32)] * len(buckets), on, on, _controls(buckets))
 
 

@@ -42,8 +42,6 @@ log = logging.getLogger(__name__)
 Tree = Any
 # Per-world state a reset or a non-stepping environment restores; everything else is derived from it by a step.
 STATE_FIELDS = ("qpos", "qvel", "ctrl", "act", "time", "qacc_warmstart")
-RESET_FIELDS = (*STATE_FIELDS, "geom_xpos", "geom_xmat")
-"""What a reset writes (`_before_physics`): the state and every geom's pose (fixtures' poses included)."""
 
 
 REST_MARGIN = 2
@@ -266,17 +264,17 @@ def _stable(tree: Tree, like: Tree, placement: Placement) -> Tree:
 
 
 class _NotGiven:
-    """A model or data leaf the first half of a split tick is not given (`Engine`'s `streams`): it takes only the
-    data fields its resets write and its lanes load, and the varying model rows, because each array a jitted call
-    takes costs host time on every call. A hook that reads another field there fails at trace time with the
-    field's name, instead of reading a wrong value."""
+    """A model leaf the halves of a split tick are not given (`Engine`'s `streams`): they read the varying model
+    rows from the tables, because each array a jitted call takes costs host time on every call (136 model leaves a
+    bucket). A hook that reads another model field there fails at trace time with the field's name, instead of
+    reading a wrong value."""
 
     def __init__(self, name: str) -> None:
         self.name = name
 
     def __repr__(self) -> str:
-        return (f"<{self.name}: not given to the first half of a split tick (backend.streams), which reads only "
-                f"the varying model rows and the data's {', '.join(RESET_FIELDS)}, mocap poses>")
+        return (f"<{self.name}: not given to the halves of a split tick (backend.streams), which read only the "
+                f"model's varying rows>")
 
     def __getattr__(self, attr: str) -> Any:
         raise AttributeError(f"{self!r} has no .{attr}")
@@ -351,11 +349,14 @@ class Engine:
     def _split(self, buckets: Sequence[Bucket], sizes: Sequence[int], data_paths: Sequence[tuple[Any, Any]]
                ) -> None:
         """The split tick (`streams`): the lanes (`StreamPhysics`), told which data leaves the tick keeps, and the
-        two jitted halves, which take no model leaf and of the data only what they read: the first half the
-        fields its resets write and its lanes load (`RESET_FIELDS`, `LOADED_FIELDS`), the second half what the
-        lanes do not return (fields of other widths such as `eq_active`, which no tick changes). Every other
-        leaf stands in as `_NotGiven` (the varying model rows come from the tables, `_gathered`)."""
-        from dojo.backends.mjx.streams import LOADED_FIELDS, StreamPhysics
+        two jitted halves (`_split_flat`).
+
+        Between ticks each bucket's data is a copy of its lane's outbox (`_words`: the leaves the lane returns as
+        one flat array of words) and the leaves it does not return (`_split_leaves`: fields of
+        other widths such as `eq_active`, and MJX's own token, which no tick changes), so that a half takes one
+        array a bucket where it took some 150 data and 136 model leaves: each costs host time on every call.
+        `Engine.data` unpacks the words when read (`_unpack`)."""
+        from dojo.backends.mjx.streams import StreamPhysics, pack_words
 
         names = [jax.tree_util.keystr(path[1:], simple=True, separator=".") for path, _ in data_paths]
         bucket_of = [path[0].idx for path, _ in data_paths]
@@ -364,30 +365,65 @@ class Engine:
         words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
                  for b in range(len(buckets))]
         self._physics = StreamPhysics(buckets, sizes, words)
-        self._returned_like = [[jax.ShapeDtypeStruct(stable[k].shape, stable[k].dtype) for name in returned
-                                for k in kept if bucket_of[k] == b and names[k] == name]
-                               for b, returned in enumerate(self._physics.returned)]
-        """Per bucket, the shape and dtype of each leaf its lane returns, in its outbox's order."""
-        wanted = set(RESET_FIELDS) | set(LOADED_FIELDS)
-        first = [k for k in kept if names[k] in wanted]
-        second = [k for k in kept if names[k] not in self._physics.returned[bucket_of[k]]]
-        self._absent_data = [np.zeros(self._data_empty[k].shape, self._data_empty[k].dtype)
-                             if k in self._data_empty else _NotGiven(f"data.{name}") for k, name in enumerate(names)]
+        self._returned_at = [[next(k for k in kept if bucket_of[k] == b and names[k] == name) for name in returned]
+                             for b, returned in enumerate(self._physics.returned)]
+        """Per bucket, the positions among the data's leaves of those its lane returns, in its outbox's order."""
+        self._returned_like = [[jax.ShapeDtypeStruct(stable[k].shape, stable[k].dtype) for k in at]
+                               for at in self._returned_at]
+        returned = {k for at in self._returned_at for k in at}
+        p = self.placement  # laid out like `_tick`'s arguments and outputs, so that the types stay a fixed point
+        self._split_leaves = [None if k in returned else np.asarray(x)
+                              for k, x in enumerate(self._with_empty(self._data_leaves, lambda x: x))]
+        """The data's leaves with None where the words hold them: the others are the same every tick."""
         model_paths = jax.tree_util.tree_flatten_with_path(self._models())[0]
         self._absent_models = [_NotGiven("model." + jax.tree_util.keystr(path[1:], simple=True, separator="."))
                                for path, _ in model_paths]
-        self._halves_kept = [[kept.index(k) for k in given] for given in (first, second)]
-        """Per half, the positions in the kept data leaves of those it takes."""
-        p = self.placement  # laid out like `_tick`'s arguments and outputs, so that the types stay a fixed point
-        self._before = jax.jit(self._flat(self._before_all, given=first, returns_data=False), donate_argnums=(2,),
+        self._words = [p.put_batched(pack_words([stable[k] for k in at])) for at in self._returned_at]
+        self._before = jax.jit(self._split_flat(self._before_all), donate_argnums=(2,),
                                in_shardings=p.in_shardings(1, 6), out_shardings=p.batched)
-        self._after = jax.jit(self._flat(self._after_all, given=second), donate_argnums=(1, 2),
-                              in_shardings=p.in_shardings(1, 8), out_shardings=p.batched)
+        self._after = jax.jit(self._split_flat(self._after_all, keeps_words=True), donate_argnums=(2,),
+                              in_shardings=p.in_shardings(1, 7), out_shardings=p.batched)
+        self._unpack = jax.jit(lambda words: [x for x in self._unpacked(words) if x.size])
+
+    def _unpacked(self, words: Sequence[jax.Array]) -> list[jax.Array]:
+        """The data's leaves (`_split_leaves` filled in) from each bucket's words."""
+        from dojo.backends.mjx.streams import unpack_words
+
+        leaves = list(self._split_leaves)
+        for w, at, like in zip(words, self._returned_at, self._returned_like):
+            for k, x in zip(at, unpack_words(w, like)):
+                leaves[k] = x
+        return leaves
+
+    def _split_flat(self, fn: Callable[..., tuple], keeps_words: bool = False) -> Callable[..., tuple]:
+        """A half of the split tick as a function of (tables' leaves, each bucket's words, the extra state's
+        leaves, ...) returning (extra leaves, per bucket the rest of what `fn` returns) and with `keeps_words` a
+        copy of the words: `fn` takes (models, tables, data, extra, ...) as `_flat`'s does and returns per bucket
+        (extra, *rest). The models stand in as `_NotGiven` (a half reads the varying model rows from the tables,
+        `_gathered`); the data is each bucket's words unpacked, and `_split_leaves`.
+
+        Why a copy: the second half reads the lanes' outboxes through views, which the next tick's lanes
+        overwrite; the engine keeps arrays of its own between ticks (one a bucket)."""
+        def flat(tables: list, words: list, extra: list, *args: Any) -> tuple:
+            out = fn(jax.tree.unflatten(self._model_def, self._absent_models),
+                     jax.tree.unflatten(self._table_def, tables),
+                     jax.tree.unflatten(self._data_def, self._unpacked(words)),
+                     jax.tree.unflatten(self._extra_def, extra), *args)
+            found, made = jax.tree.flatten(tuple(o[0] for o in out))
+            if made != self._extra_def:
+                raise TypeError(f"a tick changed the structure of its extra state: {made}")
+            rest = tuple(o[1:] for o in out)
+            return (found, rest, [jnp.copy(w) for w in words]) if keeps_words else (found, rest)
+
+        return flat
 
     @property
     def data(self) -> tuple[Tree, ...]:
-        """Each bucket's MJX data after the last tick (rebuilt from the leaves the tick keeps, once a tick)."""
+        """Each bucket's MJX data after the last tick (rebuilt from the leaves the tick keeps, once a tick; with
+        `streams`, from each lane's words)."""
         if self._data is None:
+            if self._data_leaves is None:
+                self._data_leaves = self._unpack(self._words)
             self._data = jax.tree.unflatten(self._data_def, self._with_empty(self._data_leaves, lambda x: x))
         return self._data
 
@@ -398,42 +434,27 @@ class Engine:
         return [make(self._data_empty[k]) if k in self._data_empty else next(rest)
                 for k in range(self._data_def.num_leaves)]
 
-    def _flat(self, fn: Callable[..., tuple], given: Sequence[int] | None = None, returns_data: bool = True
-              ) -> Callable[..., tuple]:
+    def _flat(self, fn: Callable[..., tuple]) -> Callable[..., tuple]:
         """`fn` of (models, tables, data, extra, ...), returning per bucket (data, extra, *rest), as a function of
-        those four trees' leaves returning (data leaves, extra leaves, per bucket rest). With `given` (a half of a
-        split tick), the function takes no model leaves and of the data only the leaves at those positions (of
-        all the data's leaves), the others stand in as `_NotGiven`; without `returns_data`, `fn` returns per
-        bucket (extra, *rest) and the function (extra leaves, per bucket rest).
+        those four trees' leaves returning (data leaves, extra leaves, per bucket rest).
 
         Why: MJX's models and data are dataclasses that JAX flattens in Python, some 500 nodes for four buckets,
         on every call of a jitted function, hashing each NumPy field of a model (about 7 ms a call on the CI
         machine; on an H200 it held the GPU idle for most of a split tick's halves). Lists of arrays flatten in C++;
-        the trees are rebuilt inside the trace, where it costs nothing per call. And every array a call takes is
-        handled on the host whatever its size (some 290 per bucket: 136 model leaves, ~150 data leaves), which is
-        why the halves take only the few they read."""
-        def flat(*leaves_in: Any) -> tuple:
-            if given is not None:
-                (tables, taken, extra), args = leaves_in[:3], leaves_in[3:]
-                models = self._absent_models
-                data = list(self._absent_data)
-                for k, x in zip(given, taken):
-                    data[k] = x
-            else:
-                (models, tables, data, extra), args = leaves_in[:4], leaves_in[4:]
-                rows = self.placement.count  # under `per_device` each device holds its share of every batch's rows
-                data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
+        the trees are rebuilt inside the trace, where it costs nothing per call."""
+        def flat(models: list, tables: list, data: list, extra: list, *args: Any) -> tuple:
+            rows = self.placement.count  # under `per_device` each device holds its share of every batch's rows
+            data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            kept = (("data", self._data_def),) if returns_data else ()
             leaves = []
-            for k, (what, structure) in enumerate((*kept, ("extra state", self._extra_def))):
+            for k, (what, structure) in enumerate((("data", self._data_def), ("extra state", self._extra_def))):
                 found, made = jax.tree.flatten(tuple(o[k] for o in out))
                 if made != structure or (what == "data" and any(found[j].size for j in self._data_empty)):
                     raise TypeError(f"a tick changed the structure of its {what}: {made}")  # read back wrong
                 leaves.append([x for j, x in enumerate(found) if j not in self._data_empty] if what == "data"
                               else found)
-            return (*leaves, tuple(o[len(leaves):] for o in out))
+            return (*leaves, tuple(o[2:] for o in out))
 
         return flat
 
@@ -458,10 +479,7 @@ class Engine:
                     stepping: tuple, inputs: tuple) -> tuple:
         """The tick up to the physics (`streams`): per bucket the extra state, the controls' aux outputs and what
         its lane loads (`streams.exchange_fields`: the controls, the state after the resets, the environments'
-        rows of the varying model fields, which environments step) packed into one flat array.
-
-        Why not the data: a bucket's MuJoCo Warp data is some 185 arrays, each an output to hand back; the lane
-        takes the resets' state with the rest and returns the whole data."""
+        rows of the varying model fields, which environments step) packed into one flat array."""
         from dojo.backends.mjx.streams import exchange_fields, pack_words
 
         out = []
@@ -475,53 +493,52 @@ class Engine:
         return tuple(out)
 
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
-                   stepping: tuple, aux: tuple, steps: tuple, outboxes: tuple) -> tuple:
-        """The tick after the physics (`streams`): each bucket's data as its lane returns it (`outboxes`: stepped,
-        the environments that do not step put back, and brought up to date by a forward, as `_after_physics`
-        does with the backend's `Hooks.refresh`) and observed."""
-        from dojo.backends.mjx.streams import unpack_words
-
+                   stepping: tuple, aux: tuple, steps: tuple) -> tuple:
+        """The tick after the physics (`streams`): each bucket's data as its lane returned it (stepped, the
+        environments that do not step put back, and brought up to date by a forward, as `_after_physics` does
+        with the backend's `Hooks.refresh`), observed."""
         out = []
-        for a, mx, table, d, e, member, reset, step, x, k, words, returned, like in zip(
-                self.arrays, mxs, tables, data, extra, members, resets, stepping, aux, steps, outboxes,
-                self._physics.returned, self._returned_like):
+        for a, mx, table, d, e, member, reset, step, x, k in zip(
+                self.arrays, mxs, tables, data, extra, members, resets, stepping, aux, steps):
             a, m, _ = _gathered(a, mx, table, member)
-            d = d.tree_replace(dict(zip(returned, unpack_words(words, like))))
-            e, outputs = self.hooks.observe(a, m, d, e, member, reset, step, x, k)
-            out.append((d, e, outputs))
+            out.append(self.hooks.observe(a, m, d, e, member, reset, step, x, k))
         return tuple(out)
 
-    def _split_tick(self, call: Callable[..., Any], models: list, tables: list, data: list, extra: list,
-                    members: tuple, resets: tuple, stepping: tuple, inputs: tuple, steps: tuple) -> tuple:
+    def _split_tick(self, call: Callable[..., Any], extra: list, members: tuple, resets: tuple, stepping: tuple,
+                    inputs: tuple, steps: tuple) -> tuple:
         """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
-        (the halves through `call`, as `tick` calls the one jitted tick)."""
-        first, second = ([data[k] for k in kept] for kept in self._halves_kept)
+        (the halves through `call`, as `tick` calls the one jitted tick); returns (extra leaves, per bucket
+        outputs) and keeps the lanes' words as the data."""
         times = [time.perf_counter()]
-        extra, before = wait_for(call(self._before, tables, first, extra, members, resets, stepping, inputs))
+        extra, before = wait_for(call(self._before, self._table_leaves, self._words, extra, members, resets,
+                                      stepping, inputs))
         times.append(time.perf_counter())
         outboxes = self._physics.step([b[1] for b in before])
         times.append(time.perf_counter())
-        out = wait_for(call(self._after, tables, second, extra, members, resets, stepping,
-                            tuple(b[0] for b in before), steps, tuple(outboxes)))
+        extra, out, self._words = wait_for(call(self._after, self._table_leaves, outboxes, extra, members, resets,
+                                                stepping, tuple(b[0] for b in before), steps))
         times.append(time.perf_counter())
         if self.split_ms is not None:
             for kept, start, end in zip(self.split_ms.values(), times, times[1:]):
                 kept.append(1e3 * (end - start))
-        return out
+        return extra, out
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
         """Advance every bucket by one control step. Without `streams` nothing waits for the device (the outputs
         are computed asynchronously); with `streams` the tick returns when they are."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
-        args = (self._model_leaves, self._table_leaves, self._data_leaves, self._extra_leaves,
-                tuple(jnp.asarray(m, jnp.int32) for m in members),
-                tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
-                tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
+        flags = (tuple(jnp.asarray(m, jnp.int32) for m in members),
+                 tuple(jnp.asarray(r, bool) for r in resets), tuple(jnp.asarray(s, bool) for s in stepping),
+                 tuple(jax.tree.map(jnp.asarray, i) for i in inputs), tuple(jnp.asarray(s, jnp.int32) for s in steps))
         call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else _call
-        out = self._split_tick(call, *args) if self._physics is not None else call(self._tick, *args)
+        if self._physics is not None:
+            self._extra_leaves, rest = self._split_tick(call, self._extra_leaves, *flags)
+            self._data_leaves = None  # unpacked from the lanes' words when `data` is read
+        else:
+            self._data_leaves, self._extra_leaves, rest = call(self._tick, self._model_leaves, self._table_leaves,
+                                                               self._data_leaves, self._extra_leaves, *flags)
         self._ticks += 1
-        self._data_leaves, self._extra_leaves, rest = out
         self._data = None
         return tuple(r[0] for r in rest)
 
