@@ -305,14 +305,13 @@ class StreamEngine:
         loaded = [lane.stepping if owner == "lane" else getattr(owners[owner], name)
                   for owner, name in exchange_fields(lane.batched)]
         lane.inbox, loads = _exchange(wp, loaded, into=True)
-        at, restores = 0, []
-        for (owner, name), array in zip(exchange_fields(lane.batched), loaded):
-            words = _words(wp, array) if array.size else None
-            if owner == "data" and name in STATE_FIELDS and words is not None:
-                saved = wp.array(ptr=lane.inbox.ptr + 4 * at, dtype=wp.float32, shape=(words.size,),
-                                 device=lane.inbox.device, copy=False)
-                restores.append((lane.stepping, words.size // lane.size, words, saved))
-            at += words.size if words is not None else 0
+        restores = []  # each state field from its words in the inbox, as loaded before the sub-steps
+        fields = [field for field, array in zip(exchange_fields(lane.batched), loaded) if array.size]
+        for (owner, name), (words, inbox, _, at, count) in zip(fields, loads):
+            if owner == "data" and name in STATE_FIELDS:
+                saved = wp.array(ptr=inbox.ptr + 4 * at, dtype=wp.float32, shape=(count,), device=inbox.device,
+                                 copy=False)
+                restores.append((lane.stepping, count // lane.size, words, saved))
         lane.returned = tuple(name for name, words in leaves.items()
                               if _returnable(wp, lane_array(wp, lane.data, name), words))
         lane.outbox, stores = _exchange(wp, [lane_array(wp, lane.data, n) for n in lane.returned], into=False)
@@ -390,7 +389,7 @@ class StreamPhysics:
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
     the lanes' graphs (each moves its inbox into the fields, steps, puts back the state of the environments that
     do not step, runs a forward, and stores the data in its outbox); and a jitted half that reads the outboxes
-    back (one DLPack view each, no copy) and observes. The host waits for the first half before it launches the
+    back (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host waits for the first half before it launches the
     lanes, and for the lanes before the second half, so each side reads only finished buffers.
 
     Why the forward runs in the lanes: as a jitted call's `Hooks.refresh` it was one MJX Warp call per bucket,
