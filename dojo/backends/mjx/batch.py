@@ -301,8 +301,8 @@ class Engine:
     CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
     when its outputs are computed. Each lane ends its tick with MuJoCo Warp's full forward at the state every
     environment holds, which takes the place of `Hooks.refresh` (the backend's is that forward; the default's
-    kinematics are part of it), and returns its whole data. The halves take no model leaf and only the data
-    leaves they read (`_split`).
+    kinematics are part of it), and returns its whole data. The halves take no model leaf, and each bucket's data
+    as one array (`_split`).
     """
 
     _physics: Any = None
@@ -352,10 +352,10 @@ class Engine:
         two jitted halves (`_split_flat`).
 
         Between ticks each bucket's data is a copy of its lane's outbox (`_words`: the leaves the lane returns as
-        one flat array of words) and the leaves it does not return (`_split_leaves`: fields of
-        other widths such as `eq_active`, and MJX's own token, which no tick changes), so that a half takes one
-        array a bucket where it took some 150 data and 136 model leaves: each costs host time on every call.
-        `Engine.data` unpacks the words when read (`_unpack`)."""
+        one flat array of words) and the leaves it does not return (`_split_leaves`: fields of other widths such
+        as `eq_active`, and MJX's own token, which no tick changes), so that a half takes one array a bucket where
+        it took some 150 data and 136 model leaves: each costs host time on every call. `Engine.data` unpacks the
+        words when read (`_unpack`)."""
         from dojo.backends.mjx.streams import StreamPhysics, pack_words
 
         names = [jax.tree_util.keystr(path[1:], simple=True, separator=".") for path, _ in data_paths]
