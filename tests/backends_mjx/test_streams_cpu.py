@@ -96,13 +96,16 @@ def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
 
 def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_not_given(buckets) -> None:
     """Between ticks each bucket's data is its lane's words (one array), which both halves take instead of some
-    150 data and 136 model leaves (every array a call takes costs host time); `Engine.data` unpacks them when read.
+    150 data and 136 model leaves (every array a call takes costs host time); `Engine.data` unpacks them when read,
+    and overflow is read from the lanes without unpacking.
     A hook that reads a model field other than the varying rows fails on the first tick with that field's name,
     instead of reading a wrong value."""
     from dojo.backends.mjx.batch import Hooks
 
     engine = _run_engine(buckets, streams=True)
     assert len(engine._words) == len(buckets) and engine._data_leaves is None
+    engine._physics.engine.lanes[0].data.overflow.fill_(1 << 3)  # the backend checks after every tick: no unpacking
+    assert engine.overflows() == {buckets[0].key: {"contacts (naconmax)": B}} and engine._data_leaves is None
     assert engine.data[0].qpos.shape == (B, buckets[0].model.nq) and engine._data_leaves is not None
 
     class ReadsMasses(Hooks):

@@ -547,18 +547,17 @@ class Engine:
 
         Warp keeps contacts and constraint rows in preallocated buffers and drops what does not fit; it sets a
         sticky per-world bit when it does, which this reads. The `jax` implementation allocates every candidate
-        contact statically and cannot overflow.
+        contact statically and cannot overflow. With `streams` the lanes run all the physics and this reads their
+        bits (the data's are a copy of them), without unpacking the data: the backend checks after every tick.
         """
+        if self._physics is not None:
+            return self._physics.engine.overflows()
         found = {}
         for arr, data in zip(self.arrays, self.data):
             bits = getattr(getattr(data, "_impl", None), "overflow", None)
             flags = decode_overflow(jax.device_get(bits)) if bits is not None else {}
             if flags:
                 found[arr.bucket.key] = flags
-        for key, flags in (self._physics.engine.overflows() if self._physics is not None else {}).items():
-            merged = found.setdefault(key, {})
-            for what, n in flags.items():
-                merged[what] = max(n, merged.get(what, 0))
         return found
 
     def check_overflow(self) -> None:
