@@ -182,3 +182,32 @@ def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:
     parts = _rates([run])["split_tick_ms"]
     assert list(parts) == ["first_half", "lanes", "second_half"] and all(v > 0 for v in parts.values())
     assert "split_tick_ms" not in _rates([run, run])  # several engines (homogeneous): no one tick to split
+
+
+def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:
+    """The ee modes' IK reads the model's varying rows in the first half (no other model leaf is given there):
+    `backend.streams=true` reaches the same poses as the jitted tick, bit for bit, in one compiled program."""
+    from pathlib import Path
+
+    from dojo.backends.mjx.backend import MjxBackend
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
+    library = SpecLibrary.load([Path(__file__).resolve().parents[1] / "specs" / "pack"])
+    plans = [compile_plan(library, library.get("task", "stack_test"), "standard", seed) for seed in range(2)]
+    reached = []
+    for streams in (False, True):
+        backend = MjxBackend(impl="warp", streams=streams)
+        backend.load(plans)
+        obs = backend.reset()
+        target = np.stack([o["state"]["ee_pose"] for o in obs])
+        target[:, :, 0] += 0.03
+        grip = np.stack([o["state"]["gripper"] for o in obs])[..., None]
+        for _ in range(3):
+            out = backend.step(np.concatenate([target, grip], -1).reshape(len(plans), 16), mode="ee")
+        reached.append((np.stack([o["state"]["ee_pose"] for o in out.obs]), backend.qpos()))
+        assert backend._engine.compilations() == 1
+    for a, b in zip(*reached):
+        np.testing.assert_array_equal(a, b)
