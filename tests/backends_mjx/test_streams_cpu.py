@@ -97,9 +97,8 @@ def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
 def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_not_given(buckets) -> None:
     """Between ticks each bucket's data is its lane's words (one array), which both halves take instead of some
     150 data and 136 model leaves (every array a call takes costs host time); `Engine.data` unpacks them when read,
-    and overflow is read from the lanes without unpacking.
-    A hook that reads a model field other than the varying rows fails on the first tick with that field's name,
-    instead of reading a wrong value."""
+    and overflow is read from the lanes without unpacking. A hook that reads a model field other than the varying
+    rows fails on the first tick with that field's name, instead of reading a wrong value."""
     from dojo.backends.mjx.batch import Hooks
 
     engine = _run_engine(buckets, streams=True)
@@ -154,9 +153,10 @@ def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -
         assert not set(names) & warp_fields, (key, names)
 
 
-def test_the_exchange_moves_fields_as_words_and_refuses_other_widths() -> None:
-    """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, and a field
-    of another width is refused by name rather than copied short."""
+def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) -> None:
+    """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, a field of
+    another width is refused by name rather than copied short, and so is a data leaf whose layout in MJX differs
+    from MuJoCo Warp's (the engine would keep it at its first value)."""
     import jax.numpy as jnp
     import warp as wp
 
@@ -172,6 +172,10 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths() -> None:
     assert _words(wp, wp.zeros((2, 3), dtype=wp.mat33, device="cpu")).shape == (54,)
     with pytest.raises(ValueError, match="32-bit scalars, not .*float64"):
         _words(wp, wp.zeros(4, dtype=wp.float64, device="cpu"))
+    from dojo.backends.mjx.streams import StreamEngine
+
+    with pytest.raises(ValueError, match=r"differ in layout for \['qpos'\]"):
+        StreamEngine(buckets[:1], [B], [[]], device="cpu", exchange=[{"qpos": 1, "qvel": B * buckets[0].model.nv}])
 
 
 def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:

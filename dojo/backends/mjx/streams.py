@@ -151,7 +151,7 @@ def lane_array(wp: Any, data: Any, name: str) -> Any:
 def _returnable(wp: Any, array: Any, words: int) -> bool:
     """Whether a lane can hand `words` 32-bit words of an MJX leaf back from `array` (contiguous, 32-bit scalars,
     the same count: MJX's and MuJoCo Warp's layouts agree on every such field, checked rather than assumed)."""
-    if array is None or not array.is_contiguous:
+    if not array.is_contiguous:
         return False
     scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
     return (wp.types.type_size_in_bytes(scalar) == 4
@@ -297,8 +297,9 @@ class StreamEngine:
         self.synchronize()
 
     def _exchanging(self, lane: _Lane, leaves: dict[str, int]) -> None:
-        """`lane`'s inbox, outbox and program under `exchange`: `leaves` are the MJX data leaves (name: words) the
-        tick keeps; the outbox holds those the lane has (`lane.returned`)."""
+        """`lane`'s inbox, outbox and program under `exchange`: `leaves` are the MJX data leaves of 32-bit elements
+        (name: words) the tick keeps; the outbox holds every one the lane has (`lane.returned`), and one it has in
+        another layout is refused by name."""
         wp = self.wp
         lane.stepping = wp.zeros(lane.size, dtype=wp.int32)
         owners = {"model": lane.model, "data": lane.data}
@@ -312,9 +313,14 @@ class StreamEngine:
                 saved = wp.array(ptr=inbox.ptr + 4 * at, dtype=wp.float32, shape=(count,), device=inbox.device,
                                  copy=False)
                 restores.append((lane.stepping, count // lane.size, words, saved))
-        lane.returned = tuple(name for name, words in leaves.items()
-                              if _returnable(wp, lane_array(wp, lane.data, name), words))
-        lane.outbox, stores = _exchange(wp, [lane_array(wp, lane.data, n) for n in lane.returned], into=False)
+        arrays = {name: lane_array(wp, lane.data, name) for name in leaves}
+        differ = [name for name, array in arrays.items() if array is not None
+                  and not _returnable(wp, array, leaves[name])]
+        if differ:  # a leaf the lane cannot return would stay at its first value in the engine's data
+            raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in layout for "
+                             f"{differ}; a lane cannot return them")
+        lane.returned = tuple(name for name, array in arrays.items() if array is not None)
+        lane.outbox, stores = _exchange(wp, [arrays[name] for name in lane.returned], into=False)
         lane.programs = [_Program(loads, stores, restores)]
 
     def tick(self, j: int = 0) -> None:
