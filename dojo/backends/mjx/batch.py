@@ -398,7 +398,7 @@ class Engine:
 
     def _split_flat(self, fn: Callable[..., tuple], keeps_words: bool = False) -> Callable[..., tuple]:
         """A half of the split tick as a function of (tables' leaves, each bucket's words, the extra state's
-        leaves, the flags (`_flags_words`), ...) returning (extra leaves, per bucket the rest of what `fn`
+        leaves, the flags (`_packed_flags`), ...) returning (extra leaves, per bucket the rest of what `fn`
         returns) and with `keeps_words` a copy of the words: `fn` takes (models, tables, data, extra, members,
         resets, stepping, steps, ...) as `_flat`'s does, the four flags per bucket, and returns per bucket (extra,
         *rest). The models stand in as `_NotGiven` (a half reads the varying model rows from the tables,
@@ -510,7 +510,7 @@ class Engine:
             out.append(self.hooks.observe(a, m, d, e, member, reset, step, x, k))
         return tuple(out)
 
-    def _flags_words(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any],
+    def _packed_flags(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any],
                      steps: Sequence[Any]) -> jax.Array:
         """A split tick's per-environment flags, every bucket's end to end, as one int32 array [4, envs] (member,
         reset, stepping, step) put on the device in one transfer: converting four arrays a bucket one by one was
@@ -544,7 +544,7 @@ class Engine:
         inputs = tuple(jax.tree.map(jnp.asarray, i) for i in inputs)
         call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else _call
         if self._physics is not None:
-            flags = self._flags_words(members, resets, stepping, steps)
+            flags = self._packed_flags(members, resets, stepping, steps)
             self._extra_leaves, rest = self._split_tick(call, self._extra_leaves, flags, inputs)
             self._data_leaves = None  # unpacked from the lanes' words when `data` is read
         else:
