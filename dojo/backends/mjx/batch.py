@@ -365,7 +365,8 @@ class Engine:
         words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
                  for b in range(len(buckets))]
         self._physics = StreamPhysics(buckets, sizes, words)
-        self._returned_at = [[next(k for k in kept if bucket_of[k] == b and names[k] == name) for name in returned]
+        position = {(bucket_of[k], names[k]): k for k in kept}
+        self._returned_at = [[position[b, name] for name in returned]
                              for b, returned in enumerate(self._physics.returned)]
         """Per bucket, the positions among the data's leaves of those its lane returns, in its outbox's order."""
         self._returned_like = [[jax.ShapeDtypeStruct(stable[k].shape, stable[k].dtype) for k in at]
@@ -453,14 +454,14 @@ class Engine:
             data = self._with_empty(data, lambda x: jnp.zeros((x.shape[0] // rows, *x.shape[1:]), x.dtype))
             out = fn(jax.tree.unflatten(self._model_def, models), jax.tree.unflatten(self._table_def, tables),
                      jax.tree.unflatten(self._data_def, data), jax.tree.unflatten(self._extra_def, extra), *args)
-            leaves = []
-            for k, (what, structure) in enumerate((("data", self._data_def), ("extra state", self._extra_def))):
-                found, made = jax.tree.flatten(tuple(o[k] for o in out))
-                if made != structure or (what == "data" and any(found[j].size for j in self._data_empty)):
-                    raise TypeError(f"a tick changed the structure of its {what}: {made}")  # read back wrong
-                leaves.append([x for j, x in enumerate(found) if j not in self._data_empty] if what == "data"
-                              else found)
-            return (*leaves, tuple(o[2:] for o in out))
+            data, data_def = jax.tree.flatten(tuple(o[0] for o in out))
+            extra, extra_def = jax.tree.flatten(tuple(o[1] for o in out))
+            for what, made, kept in (("data", data_def, self._data_def), ("extra state", extra_def, self._extra_def)):
+                if made != kept:  # the leaves would be read back under the wrong fields
+                    raise TypeError(f"a tick changed the structure of its {what}: {made}")
+            if any(data[j].size for j in self._data_empty):  # dropped below, so it would be read back empty
+                raise TypeError("a tick changed the structure of its data: an array where it had an empty one")
+            return [x for j, x in enumerate(data) if j not in self._data_empty], extra, tuple(o[2:] for o in out)
 
         return flat
 

@@ -67,13 +67,21 @@ Copy = tuple[Any, Any, int, int, int]
 """`wp.copy(dest, src, dest_offset, src_offset, count)`'s arguments, on flat views of 32-bit words (`_words`)."""
 
 
+def _word_count(wp: Any, array: Any) -> int | None:
+    """How many 32-bit words contiguous Warp `array` holds, if its elements are made of 32-bit scalars (None
+    otherwise)."""
+    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
+    if wp.types.type_size_in_bytes(scalar) != 4 or not array.is_contiguous:
+        return None
+    return array.size * wp.types.type_size_in_bytes(array.dtype) // 4
+
+
 def _words(wp: Any, array: Any) -> Any:
     """A flat float32 view of contiguous Warp `array`, whose elements are made of 32-bit scalars, so that one copy
     moves any of its fields' values (floats, ints, vectors, matrices) as words."""
-    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
-    if wp.types.type_size_in_bytes(scalar) != 4 or not array.is_contiguous:
+    count = _word_count(wp, array)
+    if count is None:
         raise ValueError(f"a lane exchanges contiguous arrays of 32-bit scalars, not {array.dtype} {array.shape}")
-    count = array.size * wp.types.type_size_in_bytes(array.dtype) // 4
     return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(count,), device=array.device, copy=False)
 
 
@@ -146,16 +154,6 @@ def lane_array(wp: Any, data: Any, name: str) -> Any:
     for part in name.removeprefix("_impl.").split("__"):
         found = getattr(found, part, None)
     return found if isinstance(found, wp.array) else None
-
-
-def _returnable(wp: Any, array: Any, words: int) -> bool:
-    """Whether a lane can hand `words` 32-bit words of an MJX leaf back from `array` (contiguous, 32-bit scalars,
-    the same count: MJX's and MuJoCo Warp's layouts agree on every such field, checked rather than assumed)."""
-    if not array.is_contiguous:
-        return False
-    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
-    return (wp.types.type_size_in_bytes(scalar) == 4
-            and array.size * wp.types.type_size_in_bytes(array.dtype) // 4 == words)
 
 
 @dataclass
@@ -238,7 +236,7 @@ class StreamEngine:
         """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one). `exchange`
         (`StreamPhysics`), per bucket {MJX data leaf name: its words}: each lane loads every field of
         `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step, runs a forward
-        and stores each of those leaves it holds (`lane_array`, `_returnable`) in its outbox, all inside its graph,
+        and stores each of those leaves it holds (`lane_array`) in its outbox, all inside its graph,
         so that a tick moves one buffer each way per bucket; `controls` is then unused."""
         import warp as wp
         from mujoco.mjx.third_party import mujoco_warp as mjw
@@ -314,8 +312,8 @@ class StreamEngine:
                                  copy=False)
                 restores.append((lane.stepping, count // lane.size, words, saved))
         arrays = {name: lane_array(wp, lane.data, name) for name in leaves}
-        differ = [name for name, array in arrays.items() if array is not None
-                  and not _returnable(wp, array, leaves[name])]
+        differ = [name for name, array in arrays.items()
+                  if array is not None and _word_count(wp, array) != leaves[name]]
         if differ:  # a leaf the lane cannot return would stay at its first value in the engine's data
             raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in layout for "
                              f"{differ}; a lane cannot return them")
@@ -395,8 +393,9 @@ class StreamPhysics:
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
     the lanes' graphs (each moves its inbox into the fields, steps, puts back the state of the environments that
     do not step, runs a forward, and stores the data in its outbox); and a jitted half that reads the outboxes
-    back (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host waits for the first half before it launches the
-    lanes, and for the lanes before the second half, so each side reads only finished buffers.
+    back (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host
+    waits for the first half before it launches the lanes, and for the lanes before the second half, so each side
+    reads only finished buffers.
 
     Why the forward runs in the lanes: as a jitted call's `Hooks.refresh` it was one MJX Warp call per bucket,
     each a Python callback on the host (2.3-2.9 ms each on an H200 host, 2026-12-02: the second half cost 72 ms
