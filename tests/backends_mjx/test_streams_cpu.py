@@ -172,6 +172,11 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) ->
     assert _words(wp, wp.zeros((2, 3), dtype=wp.mat33, device="cpu")).shape == (54,)
     with pytest.raises(ValueError, match="32-bit scalars, not .*float64"):
         _words(wp, wp.zeros(4, dtype=wp.float64, device="cpu"))
+    spaced = pack_words([ints, jnp.zeros((2, 0), jnp.float32), floats], align=8)  # ints at 0, floats at 8
+    assert spaced.shape == (12,) and not np.asarray(spaced[6:8]).any()
+    empty = jnp.zeros((2, 0), jnp.float32)
+    for a, b in zip(unpack_words(spaced, [ints, empty, floats], align=8), [ints, empty, floats]):
+        np.testing.assert_array_equal(np.asarray(a).view(np.uint32), np.asarray(b).view(np.uint32))
     from dojo.backends.mjx.streams import StreamEngine
 
     with pytest.raises(ValueError, match=r"differ in layout for \['qpos'\]"):
@@ -215,3 +220,27 @@ def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:
         assert backend._engine.compilations() == 1
     for a, b in zip(*reached):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_lanes_data_lives_in_its_outbox_each_field_where_the_halves_unpack_it(buckets) -> None:
+    """Under `exchange` the data fields a lane returns are views of its outbox (no copies out end its graph),
+    each at the offset `unpack_words` reads with `OUTBOX_ALIGN` (a multiple of Warp's allocator's alignment),
+    holding the state `make_data` and the members gave it."""
+    import warp as wp
+
+    from dojo.backends.mjx.streams import OUTBOX_ALIGN, StreamEngine, lane_array, word_offsets
+
+    bucket = buckets[0]
+    nv, nq = bucket.model.nv, bucket.model.nq
+    engine = StreamEngine([bucket], [B], [[]], device="cpu", exchange=[{"qpos": B * nq, "qvel": B * nv}])
+    lane = engine.lanes[0]
+    assert lane.returned == ("qpos", "qvel") and lane.programs[0].loads
+    offsets, total = word_offsets([B * nq, B * nv], OUTBOX_ALIGN)
+    assert lane.outbox.size == total and offsets[1] % OUTBOX_ALIGN == 0 and offsets[1] >= B * nq
+    for name, at in zip(lane.returned, offsets):
+        field = lane_array(wp, lane.data, name)
+        assert field.ptr == lane.outbox.ptr + 4 * at  # so as aligned as the outbox, an array Warp allocated
+    qpos = np.stack([bucket.members[i % len(bucket.members)].qpos for i in range(B)]).astype(np.float32)
+    np.testing.assert_array_equal(lane.outbox.numpy()[:B * nq].reshape(B, nq), qpos)
+    lane.data.qvel.fill_(2.0)  # writing the field writes the outbox
+    np.testing.assert_array_equal(lane.outbox.numpy()[offsets[1]:offsets[1] + B * nv], 2.0)

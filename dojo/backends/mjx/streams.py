@@ -85,16 +85,54 @@ def _words(wp: Any, array: Any) -> Any:
     return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(count,), device=array.device, copy=False)
 
 
-def _exchange(wp: Any, arrays: Sequence[Any], into: bool) -> tuple[Any, list[Copy]]:
-    """A flat buffer of words holding `arrays` end to end in order, and the copies between it and them: from the
-    buffer into the arrays (`into`), or from the arrays into it. Empty arrays take no room."""
+def _exchange(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
+    """A flat buffer of words holding `arrays` end to end in order, and the copies from it into them (a lane's
+    inbox). Empty arrays take no room."""
     views = [_words(wp, array) for array in arrays if array.size]
     buffer = wp.zeros(sum(view.size for view in views), dtype=wp.float32)
     copies, at = [], 0
     for view in views:
-        copies.append((view, buffer, 0, at, view.size) if into else (buffer, view, at, 0, view.size))
+        copies.append((view, buffer, 0, at, view.size))
         at += view.size
     return buffer, copies
+
+
+OUTBOX_ALIGN = 64
+"""Words (256 bytes) to which each field housed in a lane's outbox is aligned: what Warp's allocator gives every
+array, so that a field keeps the alignment its kernels test before vector loads (`wp.tile_load`)."""
+
+
+def word_offsets(counts: Sequence[int], align: int = 1) -> tuple[list[int], int]:
+    """(where each of arrays of `counts` words starts in a flat buffer holding them in order, each start a
+    multiple of `align` words; the buffer's length). An empty array takes no room."""
+    offsets, at = [], 0
+    for count in counts:
+        if count:
+            at = -(-at // align) * align
+        offsets.append(at)
+        at += count
+    return offsets, at
+
+
+def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
+    """One flat buffer of words (`word_offsets`, `OUTBOX_ALIGN`) holding the data arrays `names` (as `lane_array`
+    finds them), each rebound in `data` to a view of its place in the buffer with its value kept: the lane's
+    data lives in its outbox, so no copies out end its tick.
+
+    Why: a tick's graph copied some 145 fields a lane into the outbox after its forward: about 5% of a lane's
+    3,100 graph nodes a tick on the 24-task mix, where the nodes, not the arithmetic, set a tick's pace (README,
+    speed). Not yet measured on a GPU."""
+    arrays = [lane_array(wp, data, name) for name in names]
+    offsets, total = word_offsets([_word_count(wp, array) for array in arrays], OUTBOX_ALIGN)
+    buffer = wp.zeros(total, dtype=wp.float32)
+    for name, array, at in zip(names, arrays, offsets):
+        if array.size:
+            view = wp.array(ptr=buffer.ptr + 4 * at, dtype=array.dtype, shape=array.shape, device=buffer.device,
+                            copy=False)
+            wp.copy(view, array)
+            owner, field = _owner(data, name)
+            setattr(owner, field, view)
+    return buffer
 
 
 @dataclass
@@ -102,10 +140,9 @@ class _Program:
     """What a lane's graph runs for one control input: the copies in (the controls; under `StreamPhysics` every
     field a tick loads), the sub-steps, then with `restores` the state of the worlds that do not step put back
     (`lane_kernels.keep_unstepped`'s arguments, one launch per state field) and a forward at the state each world
-    holds, and the copies out (under `StreamPhysics` every field the tick returns)."""
+    holds (under `StreamPhysics` the data it leaves is the lane's outbox, `_house`)."""
 
     loads: list[Copy]
-    stores: list[Copy] = dataclasses.field(default_factory=list)
     restores: list[tuple[Any, int, Any, Any]] = dataclasses.field(default_factory=list)
 
 
@@ -121,8 +158,6 @@ def _control_step(wp: Any, mjw: Any, model: Any, data: Any, program: _Program, s
         for stepping, width, field, saved in program.restores:
             wp.launch(keep_unstepped, dim=field.size, inputs=[stepping, width, field, saved])
         mjw.forward(model, data)
-    for copy in program.stores:
-        wp.copy(*copy)
 
 
 def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Program, substeps: int) -> Any:
@@ -147,12 +182,20 @@ def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any) -> None:
         wp.copy(getattr(data, name), value)
 
 
+def _owner(data: Any, name: str) -> tuple[Any, str]:
+    """(the MuJoCo Warp struct, its attribute) that hold the data field behind an MJX data leaf named as
+    `jax.tree_util.keystr` names it (`qpos`, `_impl.M`, `_impl.contact__geom`: MJX flattens MuJoCo Warp's nested
+    structs with `__`); (None, ...) if there is no such struct."""
+    *path, field = name.removeprefix("_impl.").split("__")
+    for part in path:
+        data = getattr(data, part, None)
+    return data, field
+
+
 def lane_array(wp: Any, data: Any, name: str) -> Any:
-    """The MuJoCo Warp data array behind an MJX data leaf named as `jax.tree_util.keystr` names it (`qpos`,
-    `_impl.M`, `_impl.contact__geom`: MJX flattens MuJoCo Warp's nested structs with `__`), None if it has none."""
-    found = data
-    for part in name.removeprefix("_impl.").split("__"):
-        found = getattr(found, part, None)
+    """The MuJoCo Warp data array behind an MJX data leaf (named as `_owner` takes it), None if it has none."""
+    owner, field = _owner(data, name)
+    found = getattr(owner, field, None)
     return found if isinstance(found, wp.array) else None
 
 
@@ -177,8 +220,8 @@ class _Lane:
     inbox: Any = None
     """With `exchange`: the flat words a tick loads (`exchange_fields`' order), one copy from the first half."""
     outbox: Any = None
-    """With `exchange`: the flat words of the `returned` fields after the sub-steps and a forward, which the
-    second half reads."""
+    """With `exchange`: the flat words that house the `returned` fields (`_house`: the data's arrays are views
+    of it), which after the sub-steps and a forward the second half reads."""
     returned: tuple[str, ...] = ()
     """With `exchange`: the MJX data leaves (named as `lane_array` takes them) the outbox holds, in its order."""
     stepping: Any = None
@@ -199,26 +242,32 @@ def exchange_fields(batched: Sequence[str]) -> tuple[tuple[str, str], ...]:
             ("lane", "stepping"))
 
 
-def pack_words(arrays: Sequence[Any]) -> Any:
-    """JAX arrays of 32-bit elements as one flat float32 array, end to end in order with their bits kept: what a
-    lane's inbox takes in one copy."""
+def pack_words(arrays: Sequence[Any], align: int = 1) -> Any:
+    """JAX arrays of 32-bit elements as one flat float32 array, in order with their bits kept, each starting at a
+    multiple of `align` words (`word_offsets`; zeros between): what a lane's inbox takes in one copy (`align` 1),
+    or its outbox holds (`OUTBOX_ALIGN`)."""
     import jax
     import jax.numpy as jnp
 
-    parts = [jax.lax.bitcast_convert_type(a, jnp.float32).reshape(-1) for a in arrays if a.size]
+    offsets, _ = word_offsets([a.size for a in arrays], align)
+    parts, at = [], 0
+    for a, start in zip(arrays, offsets):
+        if a.size:
+            if start > at:
+                parts.append(jnp.zeros(start - at, jnp.float32))
+            parts.append(jax.lax.bitcast_convert_type(a, jnp.float32).reshape(-1))
+            at = start + a.size
     return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.float32)
 
 
-def unpack_words(words: Any, like: Sequence[Any]) -> list[Any]:
-    """A lane's outbox (flat float32 words, end to end) as arrays shaped like `like`, of their 32-bit dtypes with
-    their bits kept (`pack_words` undone)."""
+def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
+    """Flat float32 words laid out as `pack_words(..., align)` lays out arrays shaped like `like`, as those arrays
+    of their 32-bit dtypes with their bits kept."""
     import jax
 
-    out, at = [], 0
-    for a in like:
-        out.append(jax.lax.bitcast_convert_type(words[at:at + a.size], a.dtype).reshape(a.shape))
-        at += a.size
-    return out
+    offsets, _ = word_offsets([a.size for a in like], align)
+    return [jax.lax.bitcast_convert_type(words[at:at + a.size], a.dtype).reshape(a.shape)
+            for a, at in zip(like, offsets)]
 
 
 class StreamEngine:
@@ -235,8 +284,8 @@ class StreamEngine:
                  exchange: Sequence[dict[str, int]] | None = None) -> None:
         """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one). `exchange`
         (`StreamPhysics`), per bucket {MJX data leaf name: its words}: each lane loads every field of
-        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step, runs a forward
-        and stores each of those leaves it holds (`lane_array`) in its outbox, all inside its graph,
+        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step and runs a forward,
+        all inside its graph, on data whose fields behind those leaves (`lane_array`) live in its outbox (`_house`),
         so that a tick moves one buffer each way per bucket; `controls` is then unused."""
         import warp as wp
         from mujoco.mjx.third_party import mujoco_warp as mjw
@@ -296,21 +345,9 @@ class StreamEngine:
 
     def _exchanging(self, lane: _Lane, leaves: dict[str, int]) -> None:
         """`lane`'s inbox, outbox and program under `exchange`: `leaves` are the MJX data leaves of 32-bit elements
-        (name: words) the tick keeps; the outbox holds every one the lane has (`lane.returned`), and one it has in
-        another layout is refused by name."""
+        (name: words) the tick keeps; the outbox houses every one the lane has (`lane.returned`, `_house`), and
+        one it has in another layout is refused by name."""
         wp = self.wp
-        lane.stepping = wp.zeros(lane.size, dtype=wp.int32)
-        owners = {"model": lane.model, "data": lane.data}
-        loaded = [lane.stepping if owner == "lane" else getattr(owners[owner], name)
-                  for owner, name in exchange_fields(lane.batched)]
-        lane.inbox, loads = _exchange(wp, loaded, into=True)
-        restores = []  # each state field from its words in the inbox, as loaded before the sub-steps
-        fields = [field for field, array in zip(exchange_fields(lane.batched), loaded) if array.size]
-        for (owner, name), (words, inbox, _, at, count) in zip(fields, loads):
-            if owner == "data" and name in STATE_FIELDS:
-                saved = wp.array(ptr=inbox.ptr + 4 * at, dtype=wp.float32, shape=(count,), device=inbox.device,
-                                 copy=False)
-                restores.append((lane.stepping, count // lane.size, words, saved))
         arrays = {name: lane_array(wp, lane.data, name) for name in leaves}
         differ = [name for name, array in arrays.items()
                   if array is not None and _word_count(wp, array) != leaves[name]]
@@ -318,8 +355,20 @@ class StreamEngine:
             raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in layout for "
                              f"{differ}; a lane cannot return them")
         lane.returned = tuple(name for name, array in arrays.items() if array is not None)
-        lane.outbox, stores = _exchange(wp, [arrays[name] for name in lane.returned], into=False)
-        lane.programs = [_Program(loads, stores, restores)]
+        lane.outbox = _house(wp, lane.data, lane.returned)  # first: the copies in below write the housed fields
+        lane.stepping = wp.zeros(lane.size, dtype=wp.int32)
+        owners = {"model": lane.model, "data": lane.data}
+        loaded = [lane.stepping if owner == "lane" else getattr(owners[owner], name)
+                  for owner, name in exchange_fields(lane.batched)]
+        lane.inbox, loads = _exchange(wp, loaded)
+        restores = []  # each state field from its words in the inbox, as loaded before the sub-steps
+        fields = [field for field, array in zip(exchange_fields(lane.batched), loaded) if array.size]
+        for (owner, name), (words, inbox, _, at, count) in zip(fields, loads):
+            if owner == "data" and name in STATE_FIELDS:
+                saved = wp.array(ptr=inbox.ptr + 4 * at, dtype=wp.float32, shape=(count,), device=inbox.device,
+                                 copy=False)
+                restores.append((lane.stepping, count // lane.size, words, saved))
+        lane.programs = [_Program(loads, restores)]
 
     def tick(self, j: int = 0) -> None:
         """Launch one control step of every bucket (its j-th control batch); returns before the GPU finishes."""
@@ -392,8 +441,8 @@ class StreamPhysics:
     becomes: a jitted half that resets, acts and writes the controls (`batch._before_physics`) and packs what each
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
     the lanes' graphs (each moves its inbox into the fields, steps, puts back the state of the environments that
-    do not step, runs a forward, and stores the data in its outbox); and a jitted half that reads the outboxes
-    back (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host
+    do not step and runs a forward, on data that lives in its outbox); and a jitted half that reads the outboxes
+    (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host
     waits for the first half before it launches the lanes, and for the lanes before the second half, so each side
     reads only finished buffers.
 
