@@ -34,7 +34,10 @@ Measured on an H100 under MuJoCo Warp (24 simulation tasks x 2 standard plans): 
 physics sub-step whatever its size (launch-bound), so fewer buckets are faster; but one union per robot (nv 579,
 662 geoms in every bucket, against 22-88 DoFs and 33-117 geoms per task) ran 10x slower than 29 separate buckets
 at 4,096 environments. Bounded merges paid: at 4,096 environments growth 0.5 (13 buckets) ran 258k physics steps/s
-and 0.25 (17 buckets) 224k; at 16,384, 0.5 ran 643k against 545k for the 29 separate buckets (README, speed)."""
+and 0.25 (17 buckets) 224k; at 16,384, 0.5 ran 643k against 545k for the 29 separate buckets (README, speed).
+At the protocol's 1,200 environments on the split tick (`backend.streams`, H200, 2026-12-02) 1.0 was the fastest:
+0.5 (13 buckets) 254k, 0.75 (10) 267k, 1.0 (9) 272k, 1.5 and 2.0 (7) 221k; 0.5 stays the default until 1.0 is
+measured at the larger batches."""
 
 
 @dataclass(frozen=True)
