@@ -1,6 +1,6 @@
 """The stream engine (`mjx.streams`) on Warp's CPU device: it steps exactly what the jitted tick (`Engine`) steps,
 bit for bit, so what the GPU gains from its streams is speed alone; so does `Engine(streams=True)`, whose physics
-runs on it between two jitted halves, refills included; its kernel warm-up leaves the state as it was; and the one
+runs on it between two jitted halves, refills and buckets merged across tasks included; its kernel warm-up leaves the state as it was; and the one
 varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
 
 from __future__ import annotations
@@ -86,6 +86,28 @@ def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_t
     for a, b in zip(plain.data, split.data):
         for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
             np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), err_msg=name)
+    assert split.compilations() == 1 and not split.overflows()
+
+
+def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted_tick() -> None:
+    """`backend.merge=true backend.streams=true`, the fastest configuration measured at the protocol's workload
+    (README, speed): one bucket holding three tasks (parked slots, per-world rows of the varying fields), a refill
+    that moves an environment to a member of another task, and the same physics as the jitted tick."""
+    import math
+
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
+    items = {"toy": (), "pair": ("ball", "box"), "twin": ("ball", "ball")}
+    plans = [toy_plan(task=task, seed=s, items=kinds, block_size=0.03 + 0.005 * k)
+             for k, (task, kinds) in enumerate(items.items()) for s in range(2)]
+    [bucket] = make_buckets(plans, merge=True, growth=math.inf)
+    assert len(bucket.tasks) == 3 and "body_pos" in bucket.varying
+    plain, split = _run_engine([bucket], refill=True), _run_engine([bucket], streams=True, refill=True)
+    tasks = [bucket.members[m].plan.task for m in (1, 2)]
+    assert tasks[0] != tasks[1]  # the refill moved environment 1 to another task's member
+    for name in ("qpos", "qvel", "act", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
+        np.testing.assert_array_equal(np.asarray(getattr(split.data[0], name)),
+                                      np.asarray(getattr(plain.data[0], name)), err_msg=name)
     assert split.compilations() == 1 and not split.overflows()
 
 
