@@ -1,7 +1,7 @@
 """The stream engine (`mjx.streams`) on Warp's CPU device: it steps exactly what the jitted tick (`Engine`) steps,
 bit for bit, so what the GPU gains from its streams is speed alone; so does `Engine(streams=True)`, whose physics
-runs on it between two jitted halves, refills and buckets merged across tasks included; its kernel warm-up leaves the state as it was; and the one
-varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
+runs on it between two jitted halves, refills and buckets merged across tasks included; its kernel warm-up leaves
+the state as it was; and the one varying field it cannot batch per world is one MuJoCo Warp's step never reads."""
 
 from __future__ import annotations
 
