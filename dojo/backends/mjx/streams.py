@@ -120,7 +120,7 @@ def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
     data lives in its outbox, so no copies out end its tick.
 
     Why: a tick's graph copied some 145 fields a lane into the outbox after its forward: about 5% of a lane's
-    3,100 graph nodes a tick on the 24-task mix, where the nodes, not the arithmetic, set a tick's pace (README,
+    2,650 graph nodes a tick on the 24-task mix, where the nodes, not the arithmetic, set a tick's pace (README,
     speed). Not yet measured on a GPU."""
     arrays = [lane_array(wp, data, name) for name in names]
     offsets, total = word_offsets([_word_count(wp, array) for array in arrays], OUTBOX_ALIGN)
