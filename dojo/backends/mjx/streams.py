@@ -85,16 +85,13 @@ def _words(wp: Any, array: Any) -> Any:
     return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(count,), device=array.device, copy=False)
 
 
-def _exchange(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
+def _inbox(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
     """A flat buffer of words holding `arrays` end to end in order, and the copies from it into them (a lane's
     inbox). Empty arrays take no room."""
     views = [_words(wp, array) for array in arrays if array.size]
-    buffer = wp.zeros(sum(view.size for view in views), dtype=wp.float32)
-    copies, at = [], 0
-    for view in views:
-        copies.append((view, buffer, 0, at, view.size))
-        at += view.size
-    return buffer, copies
+    offsets, total = word_offsets([view.size for view in views])
+    buffer = wp.zeros(total, dtype=wp.float32)
+    return buffer, [(view, buffer, 0, at, view.size) for view, at in zip(views, offsets)]
 
 
 OUTBOX_ALIGN = 64
@@ -360,7 +357,7 @@ class StreamEngine:
         owners = {"model": lane.model, "data": lane.data}
         loaded = [lane.stepping if owner == "lane" else getattr(owners[owner], name)
                   for owner, name in exchange_fields(lane.batched)]
-        lane.inbox, loads = _exchange(wp, loaded)
+        lane.inbox, loads = _inbox(wp, loaded)
         restores = []  # each state field from its words in the inbox, as loaded before the sub-steps
         fields = [field for field, array in zip(exchange_fields(lane.batched), loaded) if array.size]
         for (owner, name), (words, inbox, _, at, count) in zip(fields, loads):
