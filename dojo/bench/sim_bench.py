@@ -20,7 +20,10 @@
 
 With `backend.streams=true` the engine of `heterogeneous` and `merged` runs its physics on Warp's lanes between two
 jitted halves (`dojo run`'s engine under that setting, with `backend.merge=true` for `merged`), and their figures
-add `split_tick_ms`: the median milliseconds of a timed tick's first half, lanes and second half, each waited for.
+add `split_tick_ms`: the median milliseconds of a timed tick's first half, lanes and second half, each waited for,
+and `lane_ms`: each lane's tick alone (its tasks, environments, median ms), as do `streams` and `merged_streams`:
+a concurrent tick as long as its slowest lane wants that bucket smaller, one as long as the lanes' sum over their
+overlap wants fewer graph nodes.
 
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
@@ -152,8 +155,9 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     out = {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
            "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
            "qpos": [np.asarray(d.qpos) for d in engine.data]}
-    if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks
+    if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks, and each lane's
         out["split_tick_ms"] = {part: float(np.median(kept)) for part, kept in engine.split_ms.items()}
+        out["lane_ms"] = engine.lane_ms()
     # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
     # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
     del engine
@@ -239,7 +243,7 @@ def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
            "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
            "compilations": int(sum(r["compilations"] for r in runs))}
     if len(runs) == 1 and "split_tick_ms" in runs[0]:  # one engine on a split tick: where its ticks' time went
-        out["split_tick_ms"] = runs[0]["split_tick_ms"]
+        out["split_tick_ms"], out["lane_ms"] = runs[0]["split_tick_ms"], runs[0]["lane_ms"]
     return out
 
 

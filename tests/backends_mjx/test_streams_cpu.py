@@ -210,9 +210,31 @@ def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:
     from dojo.bench.sim_bench import _rates, _run
 
     run = _run(buckets, [B] * len(buckets), "warp", steps=2, warmup=0, streams=True)
-    parts = _rates([run])["split_tick_ms"]
+    parts, lanes = _rates([run])["split_tick_ms"], _rates([run])["lane_ms"]
     assert list(parts) == ["first_half", "lanes", "second_half"] and all(v > 0 for v in parts.values())
+    assert [lane["tasks"] for lane in lanes] == [list(b.tasks) for b in buckets]
+    assert all(lane["envs"] == B and lane["ms"] > 0 for lane in lanes)
     assert "split_tick_ms" not in _rates([run, run])  # several engines (homogeneous): no one tick to split
+
+
+def test_timing_each_lane_alone_leaves_the_split_ticks_physics_as_it_was(buckets) -> None:
+    """`Engine.lane_ms` between two ticks: each lane recomputes the tick its inbox holds, so the next tick steps
+    from the same state, bit for bit, as without it."""
+    def run(timed: bool) -> tuple[Engine, list]:
+        engine = Engine(buckets[:1], [B], "warp", streams=True)
+        members = [np.arange(B) % len(buckets[0].members)]
+        on, off, ctrl = [np.ones(B, bool)], [np.zeros(B, bool)], _controls(buckets[:1])
+        engine.tick(members, on, off, ctrl)
+        engine.tick(members, off, on, ctrl)
+        lanes = engine.lane_ms(ticks=2) if timed else []
+        engine.tick(members, off, on, ctrl)
+        return engine, lanes
+
+    (timed, lanes), (plain, _) = run(True), run(False)
+    assert len(lanes) == 1 and lanes[0]["ms"] > 0
+    for name in ("qpos", "qvel", "time", "qacc_warmstart", "xpos"):
+        np.testing.assert_array_equal(np.asarray(getattr(timed.data[0], name)),
+                                      np.asarray(getattr(plain.data[0], name)), err_msg=name)
 
 
 def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:

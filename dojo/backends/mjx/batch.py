@@ -558,6 +558,11 @@ class Engine:
         self._data = None
         return tuple(r[0] for r in rest)
 
+    def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
+        """With `streams`, each lane's tick on its own (`StreamEngine.lane_ms`: tasks, environments, median ms of
+        `ticks`); without, [] (the jitted tick has no lanes)."""
+        return self._physics.engine.lane_ms(ticks) if self._physics is not None else []
+
     def overflows(self) -> dict[str, dict[str, int]]:
         """{bucket key: {what overflowed: worlds}} since the engine was built (warp only; reads the device).
 

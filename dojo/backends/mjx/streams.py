@@ -370,12 +370,37 @@ class StreamEngine:
     def tick(self, j: int = 0) -> None:
         """Launch one control step of every bucket (its j-th control batch); returns before the GPU finishes."""
         for lane in self.lanes:
-            if lane.graphs:
-                self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
-            else:
-                with self.wp.ScopedDevice(self.device):
-                    _control_step(self.wp, self.mjw, lane.model, lane.data, lane.programs[j % len(lane.programs)],
-                                  lane.bucket.n_substeps)
+            self._launch(lane, j)
+
+    def _launch(self, lane: _Lane, j: int) -> None:
+        """One control step of `lane` with its j-th control batch: its graph launched on its stream, or on Warp's
+        CPU device its step run."""
+        if lane.graphs:
+            self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
+        else:
+            with self.wp.ScopedDevice(self.device):
+                _control_step(self.wp, self.mjw, lane.model, lane.data, lane.programs[j % len(lane.programs)],
+                              lane.bucket.n_substeps)
+
+    def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
+        """Each lane's tick on its own, the others idle: its tasks, environments and median milliseconds over
+        `ticks` launches, each waited for.
+
+        Why: whether a concurrent tick is as long as its slowest lane (then splitting or shrinking that bucket is
+        the lever) or as the lanes' sum over their overlap (then fewer graph nodes are). Under `StreamPhysics` a
+        lane recomputes the tick its inbox still holds, so this leaves the engine's state as it was."""
+        import time
+
+        out = []
+        for lane in self.lanes:
+            times = []
+            for _ in range(ticks):
+                start = time.perf_counter()
+                self._launch(lane, 0)
+                self.synchronize()
+                times.append(time.perf_counter() - start)
+            out.append({"tasks": list(lane.bucket.tasks), "envs": lane.size, "ms": 1e3 * float(np.median(times))})
+        return out
 
     def synchronize(self) -> None:
         """Wait for every stream (ticks return as soon as the graphs are launched)."""
@@ -395,8 +420,9 @@ class StreamEngine:
 
 def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
                     steps: int, warmup: int, serial: bool = True) -> dict[str, Any]:
-    """`dojo bench sim`'s `streams` figures: the buckets concurrently (one stream each), then (with `serial`) the
-    same graphs serially on one stream, each after `warmup` untimed ticks; overflow raises `CapacityOverflow`."""
+    """`dojo bench sim`'s `streams` figures: the buckets concurrently (one stream each), each lane alone
+    (`lane_ms`), then (with `serial`) the same graphs serially on one stream, each after `warmup` untimed ticks;
+    overflow raises `CapacityOverflow`."""
     import time
 
     out: dict[str, Any] = {}
@@ -418,6 +444,8 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
         engine.check_overflow()
         out[name] = {"interactions_per_s": envs * steps / seconds,
                      "physics_steps_per_s": envs * steps * substeps / seconds, "seconds": seconds, "setup_s": setup}
+        if not one_stream:
+            out[name]["lane_ms"] = engine.lane_ms()
         if engine.unbatched:
             out["unbatched_fields"] = {k: list(v) for k, v in engine.unbatched.items()}
         log.info("streams (%s): %d bucket(s), %d envs, %.0f physics steps/s (set-up %.1f s)", name, len(buckets),
