@@ -149,6 +149,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
     jax.block_until_ready(engine.data)
     elapsed = time.perf_counter() - start
+    lanes = engine.lane_ms() if engine.split_ms is not None else []  # each lane alone, before the overflow check
     engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
@@ -157,7 +158,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
            "qpos": [np.asarray(d.qpos) for d in engine.data]}
     if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks, and each lane's
         out["split_tick_ms"] = {part: float(np.median(kept)) for part, kept in engine.split_ms.items()}
-        out["lane_ms"] = engine.lane_ms()
+        out["lane_ms"] = lanes
     # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
     # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
     del engine

@@ -219,7 +219,8 @@ def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:
 
 def test_timing_each_lane_alone_leaves_the_split_ticks_physics_as_it_was(buckets) -> None:
     """`Engine.lane_ms` between two ticks: each lane recomputes the tick its inbox holds, so the next tick steps
-    from the same state, bit for bit, as without it."""
+    from the same state, bit for bit, as without it (in scenes without actuator delays or sleeping bodies, whose
+    state a lane keeps itself)."""
     def run(timed: bool) -> tuple[Engine, list]:
         engine = Engine(buckets[:1], [B], "warp", streams=True)
         members = [np.arange(B) % len(buckets[0].members)]
@@ -268,7 +269,7 @@ def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:
 
 def test_a_lanes_data_lives_in_its_outbox_each_field_where_the_halves_unpack_it(buckets) -> None:
     """Under `exchange` the data fields a lane returns are views of its outbox (no copies out end its graph),
-    each at the offset `unpack_words` reads with `OUTBOX_ALIGN` (a multiple of Warp's allocator's alignment),
+    each at the offset `unpack_words` reads with `OUTBOX_ALIGN` (Warp's CUDA allocator's alignment),
     holding the state `make_data` and the members gave it."""
     import warp as wp
 

@@ -95,8 +95,9 @@ def _inbox(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
 
 
 OUTBOX_ALIGN = 64
-"""Words (256 bytes) to which each field housed in a lane's outbox is aligned: what Warp's allocator gives every
-array, so that a field keeps the alignment its kernels test before vector loads (`wp.tile_load`)."""
+"""Words (256 bytes) to which each field housed in a lane's outbox is aligned: what Warp's CUDA allocator gives
+every array (on Warp's CPU device 64 bytes), so that a field keeps the alignment its kernels test before vector
+loads (`wp.tile_load`)."""
 
 
 def word_offsets(counts: Sequence[int], align: int = 1) -> tuple[list[int], int]:
@@ -387,8 +388,11 @@ class StreamEngine:
         `ticks` launches, each waited for.
 
         Why: whether a concurrent tick is as long as its slowest lane (then splitting or shrinking that bucket is
-        the lever) or as the lanes' sum over their overlap (then fewer graph nodes are). Under `StreamPhysics` a
-        lane recomputes the tick its inbox still holds, so this leaves the engine's state as it was."""
+        the lever) or as the lanes' sum over their overlap (then fewer graph nodes are). Under `StreamPhysics`, after
+        a tick, a lane recomputes the tick its inbox still holds, so the next tick starts from the state it would
+        have started from; what a lane keeps that its inbox does not reload (overflow bits, and in scenes that have
+        them actuator delays and sleeping bodies) goes on with the extra ticks. Without `exchange` the extra ticks
+        step the physics on."""
         import time
 
         out = []
@@ -441,11 +445,12 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
             engine.tick(k)
         engine.synchronize()
         seconds = time.perf_counter() - start
-        engine.check_overflow()
+        lanes = [] if one_stream else engine.lane_ms()
+        engine.check_overflow()  # the lanes' timing ticks included
         out[name] = {"interactions_per_s": envs * steps / seconds,
                      "physics_steps_per_s": envs * steps * substeps / seconds, "seconds": seconds, "setup_s": setup}
-        if not one_stream:
-            out[name]["lane_ms"] = engine.lane_ms()
+        if lanes:
+            out[name]["lane_ms"] = lanes
         if engine.unbatched:
             out["unbatched_fields"] = {k: list(v) for k, v in engine.unbatched.items()}
         log.info("streams (%s): %d bucket(s), %d envs, %.0f physics steps/s (set-up %.1f s)", name, len(buckets),
