@@ -149,7 +149,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
     jax.block_until_ready(engine.data)
     elapsed = time.perf_counter() - start
-    lanes = engine.lane_ms() if engine.split_ms is not None else []  # each lane alone, before the overflow check
+    lanes = engine.lane_ms()  # each lane alone (none without streams), before the overflow check
     engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs

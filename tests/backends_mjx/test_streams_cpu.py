@@ -153,7 +153,7 @@ def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
         wp.copy(lane.data.ctrl, lane.sources[0])  # as the engine does before it loads the kernels
         before = {name: getattr(lane.data, name).numpy().copy() for name in STATE_FIELDS}
         with wp.ScopedDevice("cpu"):
-            _load_kernels(wp, warmed.mjw, lane.model, lane.data)
+            _load_kernels(wp, warmed.mjw, lane.model, lane.data, lane.programs[0])
         for name, value in before.items():
             np.testing.assert_array_equal(getattr(lane.data, name).numpy(), value, err_msg=name)
     for engine in (plain, warmed):

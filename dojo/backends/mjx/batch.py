@@ -362,9 +362,9 @@ class Engine:
         bucket_of = [path[0].idx for path, _ in data_paths]
         kept = [k for k in range(len(names)) if k not in self._data_empty]
         stable = dict(zip(kept, self._data_leaves))
-        words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
-                 for b in range(len(buckets))]
-        self._physics = StreamPhysics(buckets, sizes, words)
+        leaf_words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
+                      for b in range(len(buckets))]
+        self._physics = StreamPhysics(buckets, sizes, leaf_words)
         position = {(bucket_of[k], names[k]): k for k in kept}
         self._returned_at = [[position[b, name] for name in returned]
                              for b, returned in enumerate(self._physics.returned)]

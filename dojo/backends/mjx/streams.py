@@ -76,13 +76,19 @@ def _word_count(wp: Any, array: Any) -> int | None:
     return array.size * wp.types.type_size_in_bytes(array.dtype) // 4
 
 
+def _view(wp: Any, base: Any, at: int, dtype: Any, shape: tuple[int, ...]) -> Any:
+    """A Warp array of `dtype` and `shape` over `base`'s memory from its 32-bit word `at` on, owning nothing:
+    `base` must outlive it."""
+    return wp.array(ptr=base.ptr + 4 * at, dtype=dtype, shape=shape, device=base.device, copy=False)
+
+
 def _words(wp: Any, array: Any) -> Any:
     """A flat float32 view of contiguous Warp `array`, whose elements are made of 32-bit scalars, so that one copy
     moves any of its fields' values (floats, ints, vectors, matrices) as words."""
     count = _word_count(wp, array)
     if count is None:
         raise ValueError(f"a lane exchanges contiguous arrays of 32-bit scalars, not {array.dtype} {array.shape}")
-    return wp.array(ptr=array.ptr, dtype=wp.float32, shape=(count,), device=array.device, copy=False)
+    return _view(wp, array, 0, wp.float32, (count,))
 
 
 def _inbox(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
@@ -125,8 +131,7 @@ def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
     buffer = wp.zeros(total, dtype=wp.float32)
     for name, array, at in zip(names, arrays, offsets):
         if array.size:
-            view = wp.array(ptr=buffer.ptr + 4 * at, dtype=array.dtype, shape=array.shape, device=buffer.device,
-                            copy=False)
+            view = _view(wp, buffer, at, array.dtype, array.shape)
             wp.copy(view, array)
             owner, field = _owner(data, name)
             setattr(owner, field, view)
@@ -166,16 +171,17 @@ def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Pr
     return capture.graph
 
 
-def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any) -> None:
-    """One physics step and one forward, so that every kernel the graphs will hold is loaded (compiled on a cold
-    cache: a capture cannot load modules), with the state put back afterwards: the first tick starts from the
-    initial state."""
-    from dojo.backends.mjx import lane_kernels
-
-    wp.load_module(lane_kernels, device=data.qpos.device)
+def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any, program: _Program) -> None:
+    """One physics step, and where `program` ends its tick with restores and a forward those kernels too, so that
+    every kernel the graphs will hold is loaded (compiled on a cold cache: a capture cannot load modules), with
+    the state put back afterwards: the first tick starts from the initial state."""
     kept = {name: wp.clone(getattr(data, name)) for name in STATE_FIELDS}
     mjw.step(model, data)
-    mjw.forward(model, data)
+    if program.restores:
+        from dojo.backends.mjx import lane_kernels
+
+        wp.load_module(lane_kernels, device=data.qpos.device)
+        mjw.forward(model, data)
     for name, value in kept.items():
         wp.copy(getattr(data, name), value)
 
@@ -335,7 +341,7 @@ class StreamEngine:
                 with wp.ScopedStream(lane.stream):
                     if lane.sources:
                         wp.copy(data.ctrl, lane.sources[0])
-                    _load_kernels(wp, mjw, model, data)
+                    _load_kernels(wp, mjw, model, data, lane.programs[0])
                     lane.graphs = [_capture(wp, mjw, lane.stream, model, data, program, bucket.n_substeps)
                                    for program in lane.programs]
             self.lanes.append(lane)
@@ -363,9 +369,7 @@ class StreamEngine:
         fields = [field for field, array in zip(exchange_fields(lane.batched), loaded) if array.size]
         for (owner, name), (words, inbox, _, at, count) in zip(fields, loads):
             if owner == "data" and name in STATE_FIELDS:
-                saved = wp.array(ptr=inbox.ptr + 4 * at, dtype=wp.float32, shape=(count,), device=inbox.device,
-                                 copy=False)
-                restores.append((lane.stepping, count // lane.size, words, saved))
+                restores.append((lane.stepping, count // lane.size, words, _view(wp, inbox, at, wp.float32, (count,))))
         lane.programs = [_Program(loads, restores)]
 
     def tick(self, j: int = 0) -> None:
