@@ -65,6 +65,16 @@ def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(np.asarray(d.qpos), np.asarray(d.qvel)) for d in _run_engine(buckets).data]
 
 
+def _assert_split_ticks_as_jitted(buckets) -> None:
+    """`_run_engine` with a refill, jitted and split: the state and the poses the observations read, bit for bit,
+    in one compiled program and without overflow."""
+    plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
+    for a, b in zip(plain.data, split.data):
+        for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
+            np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), err_msg=name)
+    assert split.compilations() == 1 and not split.overflows()
+
+
 def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets) -> None:
     from dojo.backends.mjx.streams import StreamEngine
 
@@ -82,11 +92,7 @@ def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets)
 
 
 def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_tick(buckets) -> None:
-    plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
-    for a, b in zip(plain.data, split.data):
-        for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
-            np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), err_msg=name)
-    assert split.compilations() == 1 and not split.overflows()
+    _assert_split_ticks_as_jitted(buckets)
 
 
 def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted_tick() -> None:
@@ -102,13 +108,9 @@ def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted
              for k, (task, kinds) in enumerate(items.items()) for s in range(2)]
     [bucket] = make_buckets(plans, merge=True, growth=math.inf)
     assert len(bucket.tasks) == 3 and "body_pos" in bucket.varying
-    plain, split = _run_engine([bucket], refill=True), _run_engine([bucket], streams=True, refill=True)
     tasks = [bucket.members[m].plan.task for m in (1, 2)]
-    assert tasks[0] != tasks[1]  # the refill moved environment 1 to another task's member
-    for name in ("qpos", "qvel", "act", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
-        np.testing.assert_array_equal(np.asarray(getattr(split.data[0], name)),
-                                      np.asarray(getattr(plain.data[0], name)), err_msg=name)
-    assert split.compilations() == 1 and not split.overflows()
+    assert tasks[0] != tasks[1]  # `_run_engine`'s refill moves environment 1 to another task's member
+    _assert_split_ticks_as_jitted([bucket])
 
 
 def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
