@@ -23,7 +23,8 @@ jitted halves (`dojo run`'s engine under that setting, with `backend.merge=true`
 add `split_tick_ms`: the median milliseconds of a timed tick's first half, lanes and second half, each waited for,
 and `lane_ms`: each lane's tick alone (its tasks, environments, median ms), as do `streams` and `merged_streams`:
 a concurrent tick as long as its slowest lane wants that bucket smaller, one as long as the lanes' sum over their
-overlap wants fewer graph nodes.
+overlap wants fewer graph nodes. `kernel_times=N` (NVIDIA GPU) adds `kernel_ms`: per lane, one more tick run
+launch by launch with every kernel timed, its GPU total and its N costliest kernels (`mjx.kernel_timing`).
 
 The protocol's workload (50 episodes per task, all at once) is `num_envs` = 50 x the tasks: there each bucket is
 small, and `homogeneous` pays a whole launch per bucket that a GPU at a few dozen worlds leaves idle.
@@ -118,11 +119,12 @@ def _controls(bucket: Bucket, size: int) -> tuple[jax.Array, jax.Array]:
 
 
 def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
-         placement: Placement | None = None, graph_mode: object | None = None, streams: bool = False
-         ) -> dict[str, Any]:
+         placement: Placement | None = None, graph_mode: object | None = None, streams: bool = False,
+         kernels: int = 0) -> dict[str, Any]:
     """Build one engine over `buckets` (its batches split over `placement`'s devices, its Warp calls captured as
     `graph_mode` says, its physics on streams with `streams`: `backend.streams`), compile, warm up, and time
-    `steps` ticks."""
+    `steps` ticks; on streams, each lane alone after them (`lane_ms`, and with `kernels` > 0 its costliest
+    kernels, `kernel_ms`)."""
     import jax
 
     from dojo.backends.mjx.batch import Engine
@@ -150,6 +152,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     jax.block_until_ready(engine.data)
     elapsed = time.perf_counter() - start
     lanes = engine.lane_ms()  # each lane alone (none without streams), before the overflow check
+    timed = engine.kernel_ms(kernels) if kernels > 0 else []
     engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
@@ -159,6 +162,8 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks, and each lane's
         out["split_tick_ms"] = {part: float(np.median(kept)) for part, kept in engine.split_ms.items()}
         out["lane_ms"] = lanes
+    if timed:
+        out["kernel_ms"] = timed
     # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
     # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
     del engine
@@ -167,13 +172,13 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
 
 
 def _streams(buckets: Sequence[Bucket], sizes: Sequence[int], steps: int, warmup: int,
-             serial: bool = True) -> dict[str, Any]:
+             serial: bool = True, kernels: int = 0) -> dict[str, Any]:
     """The buckets' physics on one CUDA stream each, against the same graphs on one stream unless `serial` is
-    False (`mjx.streams`)."""
+    False (`mjx.streams`; `kernels`: as `measure_streams` takes it)."""
     from dojo.backends.mjx.streams import measure_streams
 
     controls = [[np.asarray(c) for c in _controls(b, n)] for b, n in zip(buckets, sizes)]
-    return measure_streams(buckets, sizes, controls, steps, warmup, serial=serial)
+    return measure_streams(buckets, sizes, controls, steps, warmup, serial=serial, kernels=kernels)
 
 
 def _alone(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int, warmup: int,
@@ -243,8 +248,8 @@ def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
            "physics_steps_per_s": sum(r["physics_steps"] for r in runs) / seconds,
            "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
            "compilations": int(sum(r["compilations"] for r in runs))}
-    if len(runs) == 1 and "split_tick_ms" in runs[0]:  # one engine on a split tick: where its ticks' time went
-        out["split_tick_ms"], out["lane_ms"] = runs[0]["split_tick_ms"], runs[0]["lane_ms"]
+    if len(runs) == 1:  # one engine on a split tick: where its ticks' time went
+        out.update({k: runs[0][k] for k in ("split_tick_ms", "lane_ms", "kernel_ms") if k in runs[0]})
     return out
 
 
@@ -368,6 +373,12 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     if on_streams and impl != "warp":
         raise ValueError("bench sim modes 'streams' and 'merged_streams' run MuJoCo Warp: they need "
                          "backend.impl=warp on an NVIDIA GPU")
+    kernels = int(cfg.get("kernel_times") or 0)
+    if kernels > 0 and not (engine_streams or on_streams):
+        raise ValueError("bench sim kernel_times times the lanes of backend.streams=true or of the modes 'streams' "
+                         "and 'merged_streams': ask for one of them")
+    if kernels > 0 and jax.default_backend() == "cpu":
+        raise ValueError("bench sim kernel_times needs an NVIDIA GPU: Warp times kernels with CUDA events")
     log.info("mjx: %s", describe_impl(impl))
     if jax.default_backend() == "cpu" and modes != ("cpu",):
         log.warning("backend=mjx on a CPU: expect minutes of compilation per task; backend=mujoco measures the "
@@ -392,7 +403,8 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     }
     out["devices"] = widest.count
     if "heterogeneous" in modes:
-        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs, engine_streams) for n in counts}
+        runs = {n: _run(buckets, sizes, impl, steps, warmup, placements[n], graphs, engine_streams, kernels)
+                for n in counts}
         out["heterogeneous"] = _rates([runs[counts[-1]]])
         if len(counts) > 1:
             out["by_devices"] = _by_devices(runs)
@@ -402,7 +414,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         out["homogeneous"] = _rates([_run([b], [n], impl, steps, warmup, widest, graphs)
                                      for b, n in zip(buckets, sizes)])
     if "streams" in modes:
-        out["streams"] = _streams(buckets, sizes, steps, warmup)
+        out["streams"] = _streams(buckets, sizes, steps, warmup, kernels=kernels)
     if {"merged", "merged_streams"} & set(modes):
         start = time.perf_counter()
         growth = merge_growth(backend.get("merge_growth"))
@@ -413,9 +425,9 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
                  "growth": growth if math.isfinite(growth) else "inf", "models": _models(merged)}
         if "merged" in modes:
             out["merged"] = {**about, **_rates([_run(merged, merged_sizes, impl, steps, warmup, widest, graphs,
-                                                     engine_streams)])}
+                                                     engine_streams, kernels)])}
         if "merged_streams" in modes:
-            out["merged_streams"] = {**about, **_streams(merged, merged_sizes, steps, warmup)}
+            out["merged_streams"] = {**about, **_streams(merged, merged_sizes, steps, warmup, kernels=kernels)}
     if "alone" in modes:
         engine = "streams" if "streams" in modes else "heterogeneous"
         out["alone"] = {"engine": engine, **_alone(buckets, sizes, impl, steps, warmup, widest, graphs,

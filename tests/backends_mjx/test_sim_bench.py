@@ -151,6 +151,33 @@ def test_streams_modes_refuse_the_jax_implementation(tmp_path):
     assert "'streams' and 'merged_streams' run MuJoCo Warp" in result.stderr
 
 
+def test_kernel_times_are_asked_of_lanes_on_a_gpu(tmp_path):
+    """`kernel_times` times the lanes' kernels with CUDA events: without lanes, or on a CPU, it is refused before
+    any plan is compiled, with what to ask for instead."""
+    result = _bench("backend.impl=jax", "kernel_times=3", "modes=[heterogeneous]", cwd=tmp_path)
+    assert result.returncode == 1 and "kernel_times times the lanes of backend.streams=true" in result.stderr
+    import jax
+
+    if jax.default_backend() == "cpu":
+        result = _bench("backend.impl=warp", "backend.streams=true", "kernel_times=3", "modes=[heterogeneous]",
+                        cwd=tmp_path)
+        assert result.returncode == 1 and "kernel_times needs an NVIDIA GPU" in result.stderr
+
+
+def test_a_lanes_kernels_are_summed_by_name_and_the_costliest_kept():
+    from types import SimpleNamespace
+
+    from dojo.backends.mjx.kernel_timing import kernel_table
+
+    launches = [SimpleNamespace(name=n, elapsed=ms) for n, ms in
+                [("solve", 0.5), ("collide", 0.25), ("solve", 0.5), ("kinematics", 0.125), ("copy", 0.25)]]
+    table = kernel_table(launches, top=2)
+    assert table["gpu_ms"] == 1.625 and table["launches"] == 5
+    assert table["kernels"] == [{"name": "solve", "ms": 1.0, "launches": 2},
+                                {"name": "collide", "ms": 0.25, "launches": 1}]  # ties by name: collide < copy
+    assert kernel_table(launches, top=0)["kernels"] == [] and kernel_table([], top=3)["launches"] == 0
+
+
 def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run():
     from dojo.bench.sim_bench import jax_memory_settings
 

@@ -219,6 +219,15 @@ def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:
     assert "split_tick_ms" not in _rates([run, run])  # several engines (homogeneous): no one tick to split
 
 
+def test_kernel_timing_is_refused_on_warps_cpu_device(buckets) -> None:
+    """Warp times kernels with CUDA events; on its CPU device it would record nothing, so an empty table would
+    pass for a lane without kernels."""
+    engine = Engine(buckets[:1], [B], "warp", streams=True)
+    with pytest.raises(RuntimeError, match="kernel timing needs the lanes on a CUDA device"):
+        engine.kernel_ms()
+    assert Engine(buckets[:1], [B], "warp").kernel_ms() == []  # the jitted tick has no lanes
+
+
 def test_timing_each_lane_alone_leaves_the_split_ticks_physics_as_it_was(buckets) -> None:
     """`Engine.lane_ms` between two ticks: each lane recomputes the tick its inbox holds, so the next tick steps
     from the same state, bit for bit, as without it (in scenes without actuator delays or sleeping bodies, whose

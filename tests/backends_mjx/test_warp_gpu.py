@@ -173,3 +173,23 @@ def test_an_engine_with_its_physics_on_streams_steps_what_the_jitted_tick_steps(
 
     for a, b in zip(final_qpos(False), final_qpos(True)):
         np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+def test_each_lanes_kernels_are_timed_on_the_gpu(warp_ready, buckets):
+    """`kernel_ms`: per lane, one tick launch by launch, every kernel timed with CUDA events: MuJoCo Warp's step
+    and forward, summed by name, the costliest first; the next tick still runs."""
+    from dojo.backends.mjx.batch import Engine
+
+    engine = Engine(buckets, [B] * len(buckets), "warp", streams=True)
+    members = [np.arange(B) % len(b.members) for b in buckets]
+    on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
+    ctrl = [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
+    engine.tick(members, on, off, ctrl)
+    lanes = engine.kernel_ms(top=5)
+    assert [lane["tasks"] for lane in lanes] == [list(b.tasks) for b in buckets]
+    for lane in lanes:
+        times = [k["ms"] for k in lane["kernels"]]
+        assert len(times) == 5 and times == sorted(times, reverse=True) and lane["gpu_ms"] >= sum(times) > 0
+        assert lane["launches"] > buckets[0].n_substeps * 20  # tens of kernels a sub-step
+    engine.tick(members, off, on, ctrl)
+    engine.check_overflow()

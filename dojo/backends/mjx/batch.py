@@ -563,6 +563,11 @@ class Engine:
         `ticks`); without, [] (the jitted tick has no lanes)."""
         return self._physics.engine.lane_ms(ticks) if self._physics is not None else []
 
+    def kernel_ms(self, top: int = 12) -> list[dict[str, Any]]:
+        """With `streams`, per lane the GPU time of its tick kernel by kernel (`StreamEngine.kernel_ms`); without,
+        [] (the jitted tick's Warp calls run inside XLA's program)."""
+        return self._physics.engine.kernel_ms(top) if self._physics is not None else []
+
     def overflows(self) -> dict[str, dict[str, int]]:
         """{bucket key: {what overflowed: worlds}} since the engine was built (warp only; reads the device).
 

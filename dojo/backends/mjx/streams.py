@@ -410,6 +410,24 @@ class StreamEngine:
             out.append({"tasks": list(lane.bucket.tasks), "envs": lane.size, "ms": 1e3 * float(np.median(times))})
         return out
 
+    def kernel_ms(self, top: int = 12) -> list[dict[str, Any]]:
+        """Per lane, one tick run launch by launch with each kernel timed on the GPU (`kernel_timing`): its tasks,
+        environments, total GPU ms and launches, and the `top` kernels by time. What the extra tick leaves is as
+        `lane_ms` says. Needs CUDA: Warp times kernels with CUDA events, and on its CPU device records nothing."""
+        if not self.on_gpu:
+            raise RuntimeError("kernel timing needs the lanes on a CUDA device: Warp times kernels with CUDA events")
+        from dojo.backends.mjx.kernel_timing import kernel_table
+
+        wp = self.wp
+        out = []
+        for lane in self.lanes:
+            with wp.ScopedDevice(self.device), wp.ScopedStream(lane.stream):
+                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+                _control_step(wp, self.mjw, lane.model, lane.data, lane.programs[0], lane.bucket.n_substeps)
+                results = wp.timing_end()
+            out.append({"tasks": list(lane.bucket.tasks), "envs": lane.size, **kernel_table(results, top)})
+        return out
+
     def synchronize(self) -> None:
         """Wait for every stream (ticks return as soon as the graphs are launched)."""
         self.wp.synchronize_device()
@@ -427,10 +445,10 @@ class StreamEngine:
 
 
 def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
-                    steps: int, warmup: int, serial: bool = True) -> dict[str, Any]:
+                    steps: int, warmup: int, serial: bool = True, kernels: int = 0) -> dict[str, Any]:
     """`dojo bench sim`'s `streams` figures: the buckets concurrently (one stream each), each lane alone
-    (`lane_ms`), then (with `serial`) the same graphs serially on one stream, each after `warmup` untimed ticks;
-    overflow raises `CapacityOverflow`."""
+    (`lane_ms`; with `kernels` > 0 also its `kernels` costliest kernels, `kernel_ms`), then (with `serial`) the
+    same graphs serially on one stream, each after `warmup` untimed ticks; overflow raises `CapacityOverflow`."""
     import time
 
     out: dict[str, Any] = {}
@@ -450,11 +468,14 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
         engine.synchronize()
         seconds = time.perf_counter() - start
         lanes = [] if one_stream else engine.lane_ms()
+        timed = engine.kernel_ms(kernels) if kernels > 0 and not one_stream else []
         engine.check_overflow()  # the lanes' timing ticks included
         out[name] = {"interactions_per_s": envs * steps / seconds,
                      "physics_steps_per_s": envs * steps * substeps / seconds, "seconds": seconds, "setup_s": setup}
         if lanes:
             out[name]["lane_ms"] = lanes
+        if timed:
+            out[name]["kernel_ms"] = timed
         if engine.unbatched:
             out["unbatched_fields"] = {k: list(v) for k, v in engine.unbatched.items()}
         log.info("streams (%s): %d bucket(s), %d envs, %.0f physics steps/s (set-up %.1f s)", name, len(buckets),
