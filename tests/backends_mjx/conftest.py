@@ -71,6 +71,20 @@ def jax_cache() -> None:
     enable_compilation_cache(CACHE_DIR)
 
 
+def forward_hooks() -> Any:
+    """Engine hooks whose refresh after the sub-steps is the MJX backend's under Warp (`_DeviceHooks.refresh`): a
+    whole forward, against which the lanes' lighter refresh (`streams._refresh`) is compared."""
+    from mujoco import mjx
+
+    from dojo.backends.mjx.batch import Hooks
+
+    class ForwardHooks(Hooks):
+        def refresh(self, m: Any, d: Any) -> Any:
+            return mjx.forward(m, d)
+
+    return ForwardHooks()
+
+
 def write_pack(root: Path, tasks: dict[str, str], suites: dict[str, str]) -> Path:
     """A task pack under `root/pack`: the given task and suite files (name -> YAML text) beside the test pack's
     assets (its block and plate), for `dojo run packs=[...]` in a child process."""

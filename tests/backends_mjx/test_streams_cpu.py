@@ -10,7 +10,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-from conftest import toy_plan
+from conftest import forward_hooks, toy_plan
 
 from dojo.backends.mjx.batch import Engine
 from dojo.backends.mjx.bucket import make_buckets
@@ -43,9 +43,10 @@ def _controls(buckets) -> list[np.ndarray]:
 
 
 def _run_engine(buckets, streams: bool = False, refill: bool = False) -> Engine:
-    """TICKS control steps from the members' initial states; with `refill`, halfway through, environment 1 of
-    each bucket starts another member's episode while environment 2 pauses."""
-    engine = Engine(buckets, [B] * len(buckets), "warp", streams=streams)
+    """TICKS control steps from the members' initial states, the jitted tick ending as the backend's does (a
+    forward); with `refill`, halfway through, environment 1 of each bucket starts another member's episode while
+    environment 2 pauses."""
+    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(), streams=streams)
     members = [np.arange(B) % len(b.members) for b in buckets]
     on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
     ctrl = _controls(buckets)
@@ -66,13 +67,19 @@ def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def _assert_split_ticks_as_jitted(buckets) -> None:
-    """`_run_engine` with a refill, jitted and split: the state and the poses the observations read, bit for bit,
-    in one compiled program and without overflow."""
+    """`_run_engine` with a refill, jitted and split: the state and all the observations and the renderer read
+    (poses, cameras, tendons, the contact pool), bit for bit, in one compiled program and without overflow. The
+    lanes refresh only those after their sub-steps (`streams._refresh`), the jitted tick runs a whole forward."""
     plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
     for a, b in zip(plain.data, split.data):
-        for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos", "site_xpos"):
+        for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "xmat", "geom_xpos",
+                     "geom_xmat", "site_xpos", "site_xmat", "cam_xpos", "cam_xmat", "ten_length"):
             np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)), err_msg=name)
+        for name in ("ten_velocity", "nacon", "contact__geom", "contact__dist", "contact__worldid"):
+            np.testing.assert_array_equal(np.asarray(getattr(b._impl, name)), np.asarray(getattr(a._impl, name)),
+                                          err_msg=name)
     assert split.compilations() == 1 and not split.overflows()
+    assert any(int(np.asarray(d._impl.nacon)[0]) for d in split.data)  # contacts to compare
 
 
 def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets) -> None:
@@ -251,7 +258,8 @@ def test_timing_each_lane_alone_leaves_the_split_ticks_physics_as_it_was(buckets
 
 def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:
     """The ee modes' IK reads the model's varying rows in the first half (no other model leaf is given there):
-    `backend.streams=true` reaches the same poses as the jitted tick, bit for bit, in one compiled program."""
+    `backend.streams=true` reaches the same poses as the jitted tick, bit for bit, in one compiled program, and
+    observes the same proprioception (the grippers' speeds come from the lanes' own tendon-velocity kernel)."""
     from pathlib import Path
 
     from dojo.backends.mjx.backend import MjxBackend
@@ -272,10 +280,15 @@ def test_ee_modes_on_streams_solve_the_ik_the_jitted_tick_solves() -> None:
         grip = np.stack([o["state"]["gripper"] for o in obs])[..., None]
         for _ in range(3):
             out = backend.step(np.concatenate([target, grip], -1).reshape(len(plans), 16), mode="ee")
-        reached.append((np.stack([o["state"]["ee_pose"] for o in out.obs]), backend.qpos()))
+        reached.append(({key: np.stack([o["state"][key] for o in out.obs]) for key in out.obs[0]["state"]},
+                        backend.qpos(), np.asarray(backend._engine.data[0]._impl.ten_velocity)))
         assert backend._engine.compilations() == 1
-    for a, b in zip(*reached):
-        np.testing.assert_array_equal(a, b)
+    (jitted, qpos, speeds), (split, split_qpos, split_speeds) = reached
+    np.testing.assert_array_equal(split_qpos, qpos)
+    np.testing.assert_array_equal(split_speeds, speeds)
+    assert list(split) == list(jitted) and np.abs(speeds).max() > 0
+    for key in jitted:  # the lanes' refresh (tendons' speeds among it) is the jitted tick's forward, to the bit
+        np.testing.assert_array_equal(split[key], jitted[key], err_msg=key)
 
 
 def test_a_lanes_data_lives_in_its_outbox_each_field_where_the_halves_unpack_it(buckets) -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-from conftest import toy_plan
+from conftest import forward_hooks, toy_plan
 
 from dojo.backends.mjx import batch
 from dojo.backends.mjx.bucket import make_buckets
@@ -159,8 +159,9 @@ def test_an_engine_with_its_physics_on_streams_steps_what_the_jitted_tick_steps(
     from dojo.backends.mjx.batch import Engine
     from dojo.backends.mjx.cache import graph_mode
 
-    def final_qpos(streams):
-        engine = Engine(buckets, [B] * len(buckets), "warp", graph_mode=graph_mode(mode, "warp"), streams=streams)
+    def final_state(streams):
+        engine = Engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(),
+                        graph_mode=graph_mode(mode, "warp"), streams=streams)
         members = [np.arange(B) % len(b.members) for b in buckets]
         on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
         ctrl = [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
@@ -169,15 +170,19 @@ def test_an_engine_with_its_physics_on_streams_steps_what_the_jitted_tick_steps(
             engine.tick(members, off, on, ctrl)
         engine.check_overflow()
         assert engine.compilations() == 1
-        return [np.asarray(d.qpos) for d in engine.data]
+        # the state and what the lanes' refresh brings up to date (`streams._refresh`; the contact pool's order
+        # follows the GPU's atomics, so its rows are compared on the CPU only)
+        return [np.concatenate([np.ravel(np.asarray(x)) for x in (d.qpos, d.xpos, d.site_xpos, d.ten_length,
+                                                                 d._impl.ten_velocity, d._impl.nacon)])
+                for d in engine.data]
 
-    for a, b in zip(final_qpos(False), final_qpos(True)):
+    for a, b in zip(final_state(False), final_state(True)):
         np.testing.assert_allclose(a, b, atol=1e-5)
 
 
 def test_each_lanes_kernels_are_timed_on_the_gpu(warp_ready, buckets):
-    """`kernel_ms`: per lane, one tick launch by launch, every kernel timed with CUDA events: MuJoCo Warp's step
-    and forward, summed by name, the costliest first; the next tick still runs."""
+    """`kernel_ms`: per lane, one tick launch by launch, every kernel timed with CUDA events: MuJoCo Warp's steps
+    and the lanes' refresh, summed by name, the costliest first; the next tick still runs."""
     from dojo.backends.mjx.batch import Engine
 
     engine = Engine(buckets, [B] * len(buckets), "warp", streams=True)

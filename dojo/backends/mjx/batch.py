@@ -179,7 +179,7 @@ class Hooks:
     def refresh(self, m: Tree, d: Tree) -> Tree:
         """One environment's derived quantities brought up to date with its new state after the sub-steps, for
         `observe` (traced per environment under `vmap`). Kinematics only by default: all the benchmark reads.
-        Under `Engine`'s `streams` the lanes run a full forward instead (`streams.StreamPhysics`)."""
+        Under `Engine`'s `streams` the lanes refresh instead (`streams._refresh`: poses, tendons, contacts)."""
         return mjx.kinematics(m, d)
 
     def init_extra(self, arr: BucketArrays) -> Tree:
@@ -299,10 +299,11 @@ class Engine:
 
     `streams` (warp, one device): the physics runs between two jitted halves of the tick, every bucket on its own
     CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
-    when its outputs are computed. Each lane ends its tick with MuJoCo Warp's full forward at the state every
-    environment holds, which takes the place of `Hooks.refresh` (the backend's is that forward; the default's
-    kinematics are part of it), and returns its whole data. The halves take no model leaf, and each bucket's data
-    as one array (`_split`).
+    when its outputs are computed. Each lane ends its tick by refreshing, at the state every environment holds,
+    the poses, tendons and contacts as MuJoCo Warp's forward computes them (`streams._refresh`), which takes the
+    place of `Hooks.refresh` (the backend's is a whole forward, of which the observations read only those; the
+    default's kinematics are part of it), and returns its whole data, the rest of it as the last sub-step left
+    it. The halves take no model leaf, and each bucket's data as one array (`_split`).
     """
 
     _physics: Any = None
@@ -503,8 +504,8 @@ class Engine:
     def _after_all(self, mxs: tuple, tables: tuple, data: tuple, extra: tuple, members: tuple, resets: tuple,
                    stepping: tuple, steps: tuple, aux: tuple) -> tuple:
         """The tick after the physics (`streams`): each bucket's data as its lane returned it (stepped, the
-        environments that do not step put back, and brought up to date by a forward, as `_after_physics` does
-        with the backend's `Hooks.refresh`), observed."""
+        environments that do not step put back, and what the observations read brought up to date, as
+        `_after_physics` does with the backend's `Hooks.refresh`), observed."""
         out = []
         for a, mx, table, d, e, member, reset, step, x, k in zip(
                 self.arrays, mxs, tables, data, extra, members, resets, stepping, aux, steps):

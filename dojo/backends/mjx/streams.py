@@ -123,7 +123,7 @@ def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
     finds them), each rebound in `data` to a view of its place in the buffer with its value kept: the lane's
     data lives in its outbox, so no copies out end its tick.
 
-    Why: a tick's graph copied some 145 fields a lane into the outbox after its forward: about 5% of a lane's
+    Why: a tick's graph copied some 145 fields a lane into the outbox at its end: about 5% of a lane's
     2,650 graph nodes a tick on the 24-task mix, where the nodes, not the arithmetic, set a tick's pace (README,
     speed). Not yet measured on a GPU."""
     arrays = [lane_array(wp, data, name) for name in names]
@@ -142,8 +142,8 @@ def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
 class _Program:
     """What a lane's graph runs for one control input: the copies in (the controls; under `StreamPhysics` every
     field a tick loads), the sub-steps, then with `restores` the state of the worlds that do not step put back
-    (`lane_kernels.keep_unstepped`'s arguments, one launch per state field) and a forward at the state each world
-    holds (under `StreamPhysics` the data it leaves is the lane's outbox, `_house`)."""
+    (`lane_kernels.keep_unstepped`'s arguments, one launch per state field) and a refresh at the state each world
+    holds (`_refresh`; under `StreamPhysics` the data it leaves is the lane's outbox, `_house`)."""
 
     loads: list[Copy]
     restores: list[tuple[Any, int, Any, Any]] = dataclasses.field(default_factory=list)
@@ -160,7 +160,33 @@ def _control_step(wp: Any, mjw: Any, model: Any, data: Any, program: _Program, s
 
         for stepping, width, field, saved in program.restores:
             wp.launch(keep_unstepped, dim=field.size, inputs=[stepping, width, field, saved])
-        mjw.forward(model, data)
+        _refresh(wp, mjw, model, data)
+
+
+def _refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
+    """What the tick's readers take from a lane, brought up to date at the state each world holds after the
+    sub-steps and the restores: the poses of bodies, geoms, sites, cameras and lights, tendon lengths
+    (`fwd_kinematics`), tendon speeds (`lane_kernels.tendon_velocity`) and contacts (`collision`), each as MuJoCo
+    Warp's forward computes it. The rest of a forward (inertia, constraint rows, actuation, the solver, sensors)
+    is left as the last sub-step computed it, as MuJoCo leaves every derived field after `mj_step`: nothing the
+    backend reads (`_DeviceHooks.observe`, the renderer) comes from there, and the next tick's first step
+    recomputes it (tested against a whole forward, bit for bit, on Warp's CPU device).
+
+    Why not the whole forward: on the GPU a lane's tick is bound by its kernels (README, speed), and a forward
+    launches 102-105 kernels on `stack_blocks` and `put_bottles_into_dustbin` against 25-28 for this (counted on
+    Warp's CPU device), the solver's, the heaviest, among those left out."""
+    if model.opt.enableflags & mjw.EnableBit.SLEEP and not model.opt.disableflags & mjw.DisableBit.ISLAND:
+        mjw.forward(model, data)  # sleeping bodies take two collision passes and the islands between them
+        return
+    mjw.fwd_kinematics(model, data)
+    if model.opt.run_collision_detection:
+        mjw.collision(model, data)
+    if model.ntendon:
+        from dojo.backends.mjx.lane_kernels import tendon_velocity
+
+        wp.launch(tendon_velocity, dim=(data.nworld, model.ntendon),
+                  inputs=[model.ten_J_rownnz, model.ten_J_rowadr, model.ten_J_colind, data.qvel, data.ten_J],
+                  outputs=[data.ten_velocity])
 
 
 def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Program, substeps: int) -> Any:
@@ -172,7 +198,7 @@ def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Pr
 
 
 def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any, program: _Program) -> None:
-    """One physics step, and where `program` ends its tick with restores and a forward those kernels too, so that
+    """One physics step, and where `program` ends its tick with restores and a refresh those kernels too, so that
     every kernel the graphs will hold is loaded (compiled on a cold cache: a capture cannot load modules), with
     the state put back afterwards: the first tick starts from the initial state."""
     kept = {name: wp.clone(getattr(data, name)) for name in STATE_FIELDS}
@@ -181,7 +207,7 @@ def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any, program: _Program) -
         from dojo.backends.mjx import lane_kernels
 
         wp.load_module(lane_kernels, device=data.qpos.device)
-        mjw.forward(model, data)
+        _refresh(wp, mjw, model, data)
     for name, value in kept.items():
         wp.copy(getattr(data, name), value)
 
@@ -225,7 +251,7 @@ class _Lane:
     """With `exchange`: the flat words a tick loads (`exchange_fields`' order), one copy from the first half."""
     outbox: Any = None
     """With `exchange`: the flat words that house the `returned` fields (`_house`: the data's arrays are views
-    of it), which after the sub-steps and a forward the second half reads."""
+    of it), which after the sub-steps and a refresh the second half reads."""
     returned: tuple[str, ...] = ()
     """With `exchange`: the MJX data leaves (named as `lane_array` takes them) the outbox holds, in its order."""
     stepping: Any = None
@@ -288,7 +314,7 @@ class StreamEngine:
                  exchange: Sequence[dict[str, int]] | None = None) -> None:
         """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one). `exchange`
         (`StreamPhysics`), per bucket {MJX data leaf name: its words}: each lane loads every field of
-        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step and runs a forward,
+        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step and refreshes,
         all inside its graph, on data whose fields behind those leaves (`lane_array`) live in its outbox (`_house`),
         so that a tick moves one buffer each way per bucket; `controls` is then unused."""
         import warp as wp
@@ -496,14 +522,14 @@ class StreamPhysics:
     becomes: a jitted half that resets, acts and writes the controls (`batch._before_physics`) and packs what each
     lane loads into one flat array (`pack_words`); this, which copies that array into the lane's inbox and launches
     the lanes' graphs (each moves its inbox into the fields, steps, puts back the state of the environments that
-    do not step and runs a forward, on data that lives in its outbox); and a jitted half that reads the outboxes
-    (one DLPack view each), observes, and copies them out as the engine's data (`Engine._words`). The host
-    waits for the first half before it launches the lanes, and for the lanes before the second half, so each side
-    reads only finished buffers.
+    do not step and refreshes what the observations read, on data that lives in its outbox); and a jitted half
+    that reads the outboxes (one DLPack view each), observes, and copies them out as the engine's data
+    (`Engine._words`). The host waits for the first half before it launches the lanes, and for the lanes before
+    the second half, so each side reads only finished buffers.
 
-    Why the forward runs in the lanes: as a jitted call's `Hooks.refresh` it was one MJX Warp call per bucket,
-    each a Python callback on the host (2.3-2.9 ms each on an H200 host, 2026-12-02: the second half cost 72 ms
-    of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels.
+    Why the refresh runs in the lanes: as a jitted call's `Hooks.refresh` (a forward) it was one MJX Warp call per
+    bucket, each a Python callback on the host (2.3-2.9 ms each on an H200 host, 2026-12-02: the second half cost
+    72 ms of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels (`_refresh`).
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], leaves: Sequence[dict[str, int]]) -> None:
@@ -521,7 +547,7 @@ class StreamPhysics:
 
     def step(self, inboxes: Sequence[Any]) -> list[Any]:
         """One control step of every bucket from `inboxes[k]`, the flat words of its `exchange_fields`
-        (`pack_words`, a JAX array); returns each bucket's `returned` leaves after the step and a forward as flat
+        (`pack_words`, a JAX array); returns each bucket's `returned` leaves after the step and a refresh as flat
         words (`unpack_words`), JAX arrays that view the lanes' outboxes (valid until the next step).
 
         Why one buffer each way: loading a dozen fields per bucket through their own DLPack views cost about
