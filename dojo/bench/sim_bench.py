@@ -248,7 +248,7 @@ def _rates(runs: Sequence[dict[str, float]]) -> dict[str, float]:
            "physics_steps_per_s": sum(r["physics_steps"] for r in runs) / seconds,
            "seconds": seconds, "setup_s": sum(r["setup_s"] for r in runs),
            "compilations": int(sum(r["compilations"] for r in runs))}
-    if len(runs) == 1:  # one engine on a split tick: where its ticks' time went
+    if len(runs) == 1:  # one engine: where its ticks' time went, if it split them (`backend.streams`)
         out.update({k: runs[0][k] for k in ("split_tick_ms", "lane_ms", "kernel_ms") if k in runs[0]})
     return out
 

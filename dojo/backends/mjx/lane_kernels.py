@@ -6,7 +6,7 @@ from __future__ import annotations
 import warp as wp
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def keep_unstepped(stepping: wp.array(dtype=wp.int32), width: int, field: wp.array(dtype=wp.float32),
                    saved: wp.array(dtype=wp.float32)):
     """Word i of a per-world state field (`width` words a world) back to its value before the sub-steps in the
@@ -17,7 +17,7 @@ def keep_unstepped(stepping: wp.array(dtype=wp.int32), width: int, field: wp.arr
         field[i] = saved[i]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def tendon_velocity(rownnz: wp.array(dtype=int), rowadr: wp.array(dtype=int), colind: wp.array(dtype=int),
                     qvel: wp.array2d(dtype=float), ten_J: wp.array2d(dtype=float),
                     ten_velocity: wp.array2d(dtype=float)):

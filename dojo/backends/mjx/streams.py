@@ -167,10 +167,14 @@ def _refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
     """What the tick's readers take from a lane, brought up to date at the state each world holds after the
     sub-steps and the restores: the poses of bodies, geoms, sites, cameras and lights, tendon lengths
     (`fwd_kinematics`), tendon speeds (`lane_kernels.tendon_velocity`) and contacts (`collision`), each as MuJoCo
-    Warp's forward computes it. The rest of a forward (inertia, constraint rows, actuation, the solver, sensors)
-    is left as the last sub-step computed it, as MuJoCo leaves every derived field after `mj_step`: nothing the
-    backend reads (`_DeviceHooks.observe`, the renderer) comes from there, and the next tick's first step
-    recomputes it (tested against a whole forward, bit for bit, on Warp's CPU device).
+    Warp's forward computes it. The rest of a forward is left as the last sub-step computed it, at the state
+    before that sub-step's integration: inertia, constraint rows and forces (`efc_*`, `nefc`, and the contacts'
+    `efc_address`, which then points into rows built for the last sub-step's contacts, not these), actuator
+    lengths, moments and forces, accelerations, sensors and their history. So the data mixes two states, unlike
+    MuJoCo's after `mj_step` (all of it before the integration): nothing the backend reads (`_DeviceHooks.observe`,
+    the renderer) comes from the stale part, a reader of contact forces would have to refresh it first, and the
+    next tick's first step recomputes all of it before reading any (tested against a whole forward, bit for bit, on
+    Warp's CPU device).
 
     Why not the whole forward: on the GPU a lane's tick is bound by its kernels (README, speed), and a forward
     launches 102-105 kernels on `stack_blocks` and `put_bottles_into_dustbin` against 25-28 for this (counted on
