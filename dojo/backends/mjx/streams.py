@@ -124,8 +124,8 @@ def _house(wp: Any, data: Any, names: Sequence[str]) -> Any:
     data lives in its outbox, so no copies out end its tick.
 
     Why: a tick's graph copied some 145 fields a lane into the outbox at its end: about 5% of a lane's
-    2,650 graph nodes a tick on the 24-task mix, where the nodes, not the arithmetic, set a tick's pace (README,
-    speed). Not yet measured on a GPU."""
+    2,650 graph nodes a tick on the 24-task mix. On an H200 (2026-12-02, the 24-task mix merged at 1,200
+    environments) the tick went from 272.3k to 279.1k physics steps/s (README, speed)."""
     arrays = [lane_array(wp, data, name) for name in names]
     offsets, total = word_offsets([_word_count(wp, array) for array in arrays], OUTBOX_ALIGN)
     buffer = wp.zeros(total, dtype=wp.float32)
