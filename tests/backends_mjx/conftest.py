@@ -73,7 +73,7 @@ def jax_cache() -> None:
 
 def forward_hooks() -> Any:
     """Engine hooks whose refresh after the sub-steps is the MJX backend's under Warp (`_DeviceHooks.refresh`): a
-    whole forward, against which the lanes' lighter refresh (`streams._refresh`) is compared."""
+    whole forward, against which the lanes' lighter refresh (`streams.refresh`) is compared."""
     from mujoco import mjx
 
     from dojo.backends.mjx.batch import Hooks

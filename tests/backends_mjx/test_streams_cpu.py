@@ -69,7 +69,7 @@ def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
 def _assert_split_ticks_as_jitted(buckets) -> None:
     """`_run_engine` with a refill, jitted and split: the state, the poses and the contact pool, bit for bit, in
     one compiled program and without overflow. The lanes refresh only what the observations and the renderer read
-    after their sub-steps (`streams._refresh`), the jitted tick runs a whole forward. (The toy scenes have no
+    after their sub-steps (`streams.refresh`), the jitted tick runs a whole forward. (The toy scenes have no
     cameras, lights or tendons: the ee-modes test compares those on a real robot.)"""
     plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
     for a, b in zip(plain.data, split.data):

@@ -170,7 +170,7 @@ def test_an_engine_with_its_physics_on_streams_steps_what_the_jitted_tick_steps(
             engine.tick(members, off, on, ctrl)
         engine.check_overflow()
         assert engine.compilations() == 1
-        # the state and what the lanes' refresh brings up to date (`streams._refresh`; the contact pool's order
+        # the state and what the lanes' refresh brings up to date (`streams.refresh`; the contact pool's order
         # follows the GPU's atomics, so its rows are compared on the CPU only)
         return [np.concatenate([np.ravel(np.asarray(x)) for x in (d.qpos, d.xpos, d.site_xpos, d.ten_length,
                                                                  d._impl.ten_velocity, d._impl.nacon)])

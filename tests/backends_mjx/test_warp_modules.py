@@ -62,3 +62,15 @@ def test_buckets_rounded_to_one_dof_count_share_their_solver_kernels():
     assert rounded["modules"] < apart["modules"]
     jaref = "_solve_init_jaref_kernel"
     assert rounded["generated_kernels"][jaref] == 1 < apart["generated_kernels"][jaref]
+
+
+@needs_warp
+def test_a_lanes_tick_is_counted_in_launches_its_refresh_lighter_than_a_forward():
+    """`launch_counts`: a lane's tick is its sub-steps and its refresh (`streams.refresh`), which launches a
+    fraction of a forward's kernels (no constraints, no solver) and more than none (poses, contacts)."""
+    from dojo.bench.warp_modules import kernel_figures
+
+    bucket = make_buckets([toy_plan()])[0]
+    counts = kernel_figures([bucket])["per_bucket"][bucket.key]["launches"]
+    assert counts["step"] > counts["forward"] > 2 * counts["refresh"] > 0
+    assert counts["tick"] == bucket.n_substeps * counts["step"] + counts["refresh"]

@@ -179,7 +179,7 @@ class Hooks:
     def refresh(self, m: Tree, d: Tree) -> Tree:
         """One environment's derived quantities brought up to date with its new state after the sub-steps, for
         `observe` (traced per environment under `vmap`). Kinematics only by default: all the benchmark reads.
-        Under `Engine`'s `streams` the lanes refresh instead (`streams._refresh`: poses, tendons, contacts)."""
+        Under `Engine`'s `streams` the lanes refresh instead (`streams.refresh`: poses, tendons, contacts)."""
         return mjx.kinematics(m, d)
 
     def init_extra(self, arr: BucketArrays) -> Tree:
@@ -300,7 +300,7 @@ class Engine:
     `streams` (warp, one device): the physics runs between two jitted halves of the tick, every bucket on its own
     CUDA stream (`streams.StreamPhysics`, which holds a second copy of each bucket's data); a tick then returns
     when its outputs are computed. Each lane ends its tick by refreshing, at the state every environment holds,
-    the poses, tendons and contacts as MuJoCo Warp's forward computes them (`streams._refresh`), which takes the
+    the poses, tendons and contacts as MuJoCo Warp's forward computes them (`streams.refresh`), which takes the
     place of `Hooks.refresh` (the backend's is a whole forward, of which the observations read only those; the
     default's kinematics are part of it), and returns its whole data, the rest of it as the last sub-step left
     it. The halves take no model leaf, and each bucket's data as one array (`_split`).

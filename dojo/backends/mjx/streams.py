@@ -143,7 +143,7 @@ class _Program:
     """What a lane's graph runs for one control input: the copies in (the controls; under `StreamPhysics` every
     field a tick loads), the sub-steps, then with `restores` the state of the worlds that do not step put back
     (`lane_kernels.keep_unstepped`'s arguments, one launch per state field) and a refresh at the state each world
-    holds (`_refresh`; under `StreamPhysics` the data it leaves is the lane's outbox, `_house`)."""
+    holds (`refresh`; under `StreamPhysics` the data it leaves is the lane's outbox, `_house`)."""
 
     loads: list[Copy]
     restores: list[tuple[Any, int, Any, Any]] = dataclasses.field(default_factory=list)
@@ -160,10 +160,10 @@ def _control_step(wp: Any, mjw: Any, model: Any, data: Any, program: _Program, s
 
         for stepping, width, field, saved in program.restores:
             wp.launch(keep_unstepped, dim=field.size, inputs=[stepping, width, field, saved])
-        _refresh(wp, mjw, model, data)
+        refresh(wp, mjw, model, data)
 
 
-def _refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
+def refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
     """What the tick's readers take from a lane, brought up to date at the state each world holds after the
     sub-steps and the restores: the poses of bodies, geoms, sites, cameras and lights, tendon lengths
     (`fwd_kinematics`), tendon speeds (`lane_kernels.tendon_velocity`) and contacts (`collision`), each as MuJoCo
@@ -177,8 +177,8 @@ def _refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
     Warp's CPU device).
 
     Why not the whole forward: on the GPU a lane's tick is bound by its kernels (README, speed), and a forward
-    launches 102-105 kernels on `stack_blocks` and `put_bottles_into_dustbin` against 25-28 for this (counted on
-    Warp's CPU device), the solver's, the heaviest, among those left out."""
+    launches 102-105 kernels on `stack_blocks` and `put_bottles_into_dustbin` against 25-28 for this
+    (`warp_launches.launch_counts`, `dojo bench kernels`), the solver's, the heaviest, among those left out."""
     if model.opt.enableflags & mjw.EnableBit.SLEEP and not model.opt.disableflags & mjw.DisableBit.ISLAND:
         mjw.forward(model, data)  # sleeping bodies take two collision passes and the islands between them
         return
@@ -211,7 +211,7 @@ def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any, program: _Program) -
         from dojo.backends.mjx import lane_kernels
 
         wp.load_module(lane_kernels, device=data.qpos.device)
-        _refresh(wp, mjw, model, data)
+        refresh(wp, mjw, model, data)
     for name, value in kept.items():
         wp.copy(getattr(data, name), value)
 
@@ -533,7 +533,7 @@ class StreamPhysics:
 
     Why the refresh runs in the lanes: as a jitted call's `Hooks.refresh` (a forward) it was one MJX Warp call per
     bucket, each a Python callback on the host (2.3-2.9 ms each on an H200 host, 2026-12-02: the second half cost
-    72 ms of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels (`_refresh`).
+    72 ms of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels (`refresh`).
     """
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], leaves: Sequence[dict[str, int]]) -> None:

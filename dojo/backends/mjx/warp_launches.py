@@ -36,12 +36,15 @@ def _empty(dim: Any) -> bool:
     return int(np.prod(dim if isinstance(dim, (tuple, list)) else [dim])) == 0
 
 
-def _recording(wp: Any, launches: Launches) -> ExitStack:
-    """Warp's launch and conditional-capture functions replaced by recorders until the stack closes."""
+def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) -> ExitStack:
+    """Warp's launch and conditional-capture functions replaced by recorders until the stack closes; with
+    `counted`, every launch over a non-empty grid is appended to it too (its kernel), in order."""
 
     def launch(kernel: Any, *args: Any, **kwargs: Any) -> None:
         if not _empty(kwargs.get("dim", args[0] if args else None)):
             launches[kernel.module.name, kwargs.get("block_dim")] = kernel.module
+            if counted is not None:
+                counted.append(kernel)
 
     def capture_while(condition: Any, while_body: Callable[..., None], **kwargs: Any) -> None:
         while_body(**kwargs)
@@ -75,3 +78,32 @@ def recorded_launches(bucket: Bucket, device: str | None = None) -> Launches:
         with _recording(wp, launches):
             mjw.step(model, data)
     return launches
+
+
+def launch_counts(bucket: Bucket, device: str | None = None) -> dict[str, int]:
+    """How many kernels (launches over non-empty grids, one solver iteration) one world of `bucket`'s model
+    launches for a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`), and so a
+    lane's tick: its sub-steps and the refresh (besides its ~20 copies in and one restore per state field).
+
+    Why: a lane's tick on the GPU is a graph of these launches, and at small batches their number, not their
+    arithmetic, sets its pace (README, speed); this is how a change to the tick is counted before a GPU runs it."""
+    import warp as wp
+    from mujoco.mjx.third_party import mujoco_warp as mjw
+
+    from dojo.backends.mjx.streams import refresh
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    wp.init()
+    contacts, rows = contact_capacity(bucket)
+    counts = {}
+    with wp.ScopedDevice(device):
+        model = mjw.put_model(bucket.model)
+        data = mjw.make_data(bucket.model, nworld=1, naconmax=contacts, njmax=rows)
+        for part, run in (("step", lambda: mjw.step(model, data)), ("forward", lambda: mjw.forward(model, data)),
+                          ("refresh", lambda: refresh(wp, mjw, model, data))):
+            counted: list[Any] = []
+            with _recording(wp, {}, counted):
+                run()
+            counts[part] = len(counted)
+    counts["tick"] = bucket.n_substeps * counts["step"] + counts["refresh"]
+    return counts
