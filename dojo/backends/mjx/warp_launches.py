@@ -85,8 +85,8 @@ def launch_counts(bucket: Bucket, device: str | None = None) -> dict[str, int]:
     launches for a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`), and so a
     lane's tick: its sub-steps and the refresh (besides its ~20 copies in and one restore per state field).
 
-    Why: a lane's tick on the GPU is a graph of these launches, and at small batches their number, not their
-    arithmetic, sets its pace (README, speed); this is how a change to the tick is counted before a GPU runs it."""
+    Why: a lane's tick on the GPU is a graph of these launches, and where lanes are small their number weighs on
+    its pace beside their arithmetic (README, speed); this counts a change to the tick before a GPU runs it."""
     import warp as wp
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
