@@ -128,6 +128,7 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
     import jax
 
     from dojo.backends.mjx.batch import Engine
+    from dojo.backends.mjx.streams import lane_figures
 
     start = time.perf_counter()
     engine = Engine(buckets, sizes, impl, placement=placement, graph_mode=graph_mode, streams=streams)
@@ -151,19 +152,15 @@ def _run(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, steps: int,
         engine.tick(members, zeros, ones, [s[k % 2] for s in swings])
     jax.block_until_ready(engine.data)
     elapsed = time.perf_counter() - start
-    lanes = engine.lane_ms()  # each lane alone (none without streams), before the overflow check
-    timed = engine.kernel_ms(kernels) if kernels > 0 else []
+    lanes = lane_figures(engine, kernels)  # each lane alone (none without streams), before the overflow check
     engine.check_overflow()  # dropped contacts make a faster, wrong simulation: no figures for it
     envs = sum(sizes)
     substeps = sum(n * b.n_substeps for b, n in zip(buckets, sizes)) / envs
     out = {"seconds": elapsed, "setup_s": compile_s, "interactions": envs * steps,
            "physics_steps": envs * steps * substeps, "compilations": engine.compilations(),
-           "qpos": [np.asarray(d.qpos) for d in engine.data]}
-    if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks, and each lane's
+           "qpos": [np.asarray(d.qpos) for d in engine.data], **lanes}
+    if engine.split_ms is not None:  # where a split tick's time goes: medians of the timed ticks
         out["split_tick_ms"] = {part: float(np.median(kept)) for part, kept in engine.split_ms.items()}
-        out["lane_ms"] = lanes
-    if timed:
-        out["kernel_ms"] = timed
     # The engine's jitted tick refers back to it (a cycle), so only the garbage collector frees its programs: now,
     # not while the next engine's Warp call captures a CUDA graph, which the freeing would break (H100).
     del engine

@@ -14,7 +14,7 @@ the modules that machine compiled for the same buckets (the one apart is a spars
 comes from the device).
 
 Counts only: a module's compile time varies from under a second to about 19 s (a convex-convex collision kernel).
-Per bucket it also counts the kernels a lane's tick launches (`launch_counts`), the other figure a change to the
+Per bucket it also counts the kernels a lane's tick launches (`recorded_tick`), the other figure a change to the
 tick moves: at small batches the launches, not their arithmetic, set a lane's pace on the GPU.
 Needs warp-lang (any machine; MuJoCo Warp ships inside mujoco-mjx).
 """
@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
-from dojo.backends.mjx.warp_launches import launch_counts, recorded_launches
+from dojo.backends.mjx.warp_launches import Launches, recorded_launches, recorded_tick
 
 log = logging.getLogger(__name__)
 NAMED_KERNEL = "__locals__"
@@ -46,21 +46,26 @@ def _module_name(module: Any) -> str:
 def bucket_modules(bucket: Bucket) -> set[str]:
     """The Warp modules one step of `bucket`'s model launches (`warp_launches`, on Warp's CPU device: any machine),
     by name; a module launched with several block sizes counts once."""
-    return {_module_name(module) for module in recorded_launches(bucket, "cpu").values()}
+    return _module_names(recorded_launches(bucket, "cpu"))
+
+
+def _module_names(launches: Launches) -> set[str]:
+    return {_module_name(module) for module in launches.values()}
 
 
 def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:
     """The modules of every bucket: how many in all, how many every bucket shares, how many of each generated
     kernel, and per bucket its DoFs, rows, the modules no other bucket needs and the kernels its lane launches
-    (`launch_counts`: a step, a forward, the lane's refresh, a tick)."""
+    (`recorded_tick`: a step, a forward, the lane's refresh, a tick), from one recording each."""
     start = time.perf_counter()
-    sets = {b.key: bucket_modules(b) for b in buckets}
+    recorded = {b.key: recorded_tick(b, "cpu") for b in buckets}
+    sets = {key: _module_names(launches) for key, (launches, _) in recorded.items()}
     union = set().union(*sets.values())
     shared = set.intersection(*sets.values()) if sets else set()
     uses = Counter(m for s in sets.values() for m in s)
     per_bucket = {b.key: {"tasks": list(b.tasks), "nv": int(b.model.nv), "rows": contact_capacity(b)[1],
                           "modules": len(sets[b.key]), "own": sorted(m for m in sets[b.key] if uses[m] == 1),
-                          "launches": launch_counts(b, "cpu")}
+                          "launches": recorded[b.key][1]}
                   for b in buckets}
     kinds = Counter(m.split(NAMED_KERNEL)[0] for m in union if NAMED_KERNEL in m)
     return {"modules": len(union), "shared_by_every_bucket": len(shared),

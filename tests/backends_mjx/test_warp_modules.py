@@ -66,7 +66,7 @@ def test_buckets_rounded_to_one_dof_count_share_their_solver_kernels():
 
 @needs_warp
 def test_a_lanes_tick_is_counted_in_launches_its_refresh_lighter_than_a_forward():
-    """`launch_counts`: a lane's tick is its sub-steps and its refresh (`streams.refresh`), which launches a
+    """`recorded_tick`: a lane's tick is its sub-steps and its refresh (`streams.refresh`), which launches a
     fraction of a forward's kernels (no constraints, no solver) and more than none (poses, contacts)."""
     from dojo.bench.warp_modules import kernel_figures
 

@@ -178,7 +178,7 @@ def refresh(wp: Any, mjw: Any, model: Any, data: Any) -> None:
 
     Why not the whole forward: on the GPU a lane's tick is bound by its kernels (README, speed), and a forward
     launches 102-105 kernels on `stack_blocks` and `put_bottles_into_dustbin` against 25-28 for this
-    (`warp_launches.launch_counts`, `dojo bench kernels`), the solver's, the heaviest, among those left out."""
+    (`warp_launches.recorded_tick`, `dojo bench kernels`), the solver's, the heaviest, among those left out."""
     if model.opt.enableflags & mjw.EnableBit.SLEEP and not model.opt.disableflags & mjw.DisableBit.ISLAND:
         mjw.forward(model, data)  # sleeping bodies take two collision passes and the islands between them
         return
@@ -413,9 +413,13 @@ class StreamEngine:
         if lane.graphs:
             self.wp.capture_launch(lane.graphs[j % len(lane.graphs)], stream=lane.stream)
         else:
-            with self.wp.ScopedDevice(self.device):
-                _control_step(self.wp, self.mjw, lane.model, lane.data, lane.programs[j % len(lane.programs)],
-                              lane.bucket.n_substeps)
+            self._step_eagerly(lane, j)
+
+    def _step_eagerly(self, lane: _Lane, j: int) -> None:
+        """`lane`'s control step with its j-th control batch, launch by launch (no graph) on the current stream."""
+        with self.wp.ScopedDevice(self.device):
+            _control_step(self.wp, self.mjw, lane.model, lane.data, lane.programs[j % len(lane.programs)],
+                          lane.bucket.n_substeps)
 
     def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
         """Each lane's tick on its own, the others idle: its tasks, environments and median milliseconds over
@@ -451,9 +455,9 @@ class StreamEngine:
         wp = self.wp
         out = []
         for lane in self.lanes:
-            with wp.ScopedDevice(self.device), wp.ScopedStream(lane.stream):
+            with wp.ScopedStream(lane.stream):
                 wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-                _control_step(wp, self.mjw, lane.model, lane.data, lane.programs[0], lane.bucket.n_substeps)
+                self._step_eagerly(lane, 0)
                 results = wp.timing_end()
             out.append({"tasks": list(lane.bucket.tasks), "envs": lane.size, **kernel_table(results, top)})
         return out
@@ -472,6 +476,14 @@ class StreamEngine:
         found = self.overflows()
         if found:
             raise CapacityOverflow(f"MuJoCo Warp dropped contacts or constraints: {found}")
+
+
+def lane_figures(engine: Any, kernels: int) -> dict[str, Any]:
+    """What `dojo bench sim` reports of an engine's lanes (a `StreamEngine`, or an `Engine` with `streams`): each
+    lane alone (`lane_ms`) and, with `kernels` > 0, its `kernels` costliest kernels (`kernel_ms`); none for an
+    engine without lanes. Their extra ticks count in the overflow check, which comes after."""
+    figures = {"lane_ms": engine.lane_ms(), "kernel_ms": engine.kernel_ms(kernels) if kernels > 0 else []}
+    return {name: value for name, value in figures.items() if value}
 
 
 def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
@@ -497,15 +509,11 @@ def measure_streams(buckets: Sequence[Bucket], sizes: Sequence[int], controls: S
             engine.tick(k)
         engine.synchronize()
         seconds = time.perf_counter() - start
-        lanes = [] if one_stream else engine.lane_ms()
-        timed = engine.kernel_ms(kernels) if kernels > 0 and not one_stream else []
+        lanes = {} if one_stream else lane_figures(engine, kernels)
         engine.check_overflow()  # the lanes' timing ticks included
         out[name] = {"interactions_per_s": envs * steps / seconds,
-                     "physics_steps_per_s": envs * steps * substeps / seconds, "seconds": seconds, "setup_s": setup}
-        if lanes:
-            out[name]["lane_ms"] = lanes
-        if timed:
-            out[name]["kernel_ms"] = timed
+                     "physics_steps_per_s": envs * steps * substeps / seconds, "seconds": seconds, "setup_s": setup,
+                     **lanes}
         if engine.unbatched:
             out["unbatched_fields"] = {k: list(v) for k, v in engine.unbatched.items()}
         log.info("streams (%s): %d bucket(s), %d envs, %.0f physics steps/s (set-up %.1f s)", name, len(buckets),

@@ -62,31 +62,16 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
     return stack
 
 
-def recorded_launches(bucket: Bucket, device: str | None = None) -> Launches:
-    """The kernels one step of one world of `bucket`'s model launches on `device` (Warp's current device when
-    None), with the engine's contact and row capacities."""
-    import warp as wp
-    from mujoco.mjx.third_party import mujoco_warp as mjw
+def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, dict[str, int]]:
+    """On `device` (Warp's current device when None), one world of `bucket`'s model with the engine's contact and
+    row capacities: the kernels one physics step launches (`recorded_launches`), and how many kernels (launches
+    over non-empty grids, one solver iteration) a step, a whole forward and a lane's end-of-tick refresh
+    (`streams.refresh`) launch, and so a lane's tick: its sub-steps and the refresh (besides its ~20 copies in and
+    one restore per state field). One model and data serve all three records.
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
-    launches: Launches = {}
-    contacts, rows = contact_capacity(bucket)
-    with wp.ScopedDevice(device):
-        model = mjw.put_model(bucket.model)
-        data = mjw.make_data(bucket.model, nworld=1, naconmax=contacts, njmax=rows)
-        with _recording(wp, launches):
-            mjw.step(model, data)
-    return launches
-
-
-def launch_counts(bucket: Bucket, device: str | None = None) -> dict[str, int]:
-    """How many kernels (launches over non-empty grids, one solver iteration) one world of `bucket`'s model
-    launches for a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`), and so a
-    lane's tick: its sub-steps and the refresh (besides its ~20 copies in and one restore per state field).
-
-    Why: a lane's tick on the GPU is a graph of these launches, and where lanes are small their number weighs on
-    its pace beside their arithmetic (README, speed); this counts a change to the tick before a GPU runs it."""
+    Why the counts: a lane's tick on the GPU is a graph of these launches, and where lanes are small their number
+    weighs on its pace beside their arithmetic (README, speed); this counts a change to the tick before a GPU
+    runs it."""
     import warp as wp
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
@@ -94,16 +79,22 @@ def launch_counts(bucket: Bucket, device: str | None = None) -> dict[str, int]:
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
-    contacts, rows = contact_capacity(bucket)
+    launches: Launches = {}
     counts = {}
+    contacts, rows = contact_capacity(bucket)
     with wp.ScopedDevice(device):
         model = mjw.put_model(bucket.model)
         data = mjw.make_data(bucket.model, nworld=1, naconmax=contacts, njmax=rows)
         for part, run in (("step", lambda: mjw.step(model, data)), ("forward", lambda: mjw.forward(model, data)),
                           ("refresh", lambda: refresh(wp, mjw, model, data))):
             counted: list[Any] = []
-            with _recording(wp, {}, counted):
+            with _recording(wp, launches if part == "step" else {}, counted):
                 run()
             counts[part] = len(counted)
     counts["tick"] = bucket.n_substeps * counts["step"] + counts["refresh"]
-    return counts
+    return launches, counts
+
+
+def recorded_launches(bucket: Bucket, device: str | None = None) -> Launches:
+    """The kernels one step of one world of `bucket`'s model launches (`recorded_tick`)."""
+    return recorded_tick(bucket, device)[0]
