@@ -141,6 +141,21 @@ def _columns(payload: dict[str, Any]) -> tuple[dict[str, Any], list[Any]]:
     return payload[columns.KEY], _distinct_ids(env_ids)
 
 
+class _LetGo:
+    """A call that lets go of ``fn`` (and what it closes over: a request's observations, perhaps views of a client's
+    shared-memory segment) as it returns. The model's executor keeps its work item a moment after handing back the
+    result; a connection closing in that moment would find its segment still lent out, keep it mapped and warn that
+    the model kept what it borrowed."""
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self._fn: Callable[[], Any] | None = fn
+
+    def __call__(self) -> Any:
+        fn, self._fn = self._fn, None
+        assert fn is not None, "a model call runs once"
+        return fn()
+
+
 class PolicyServer:
     """Serves one Model. Use ``await start()``/``stop()``, ``serve_forever()``, or ``ServerThread``."""
 
@@ -211,7 +226,7 @@ class PolicyServer:
     async def _call_model(self, fn: Callable[[], Any]) -> Any:
         loop = asyncio.get_running_loop()
         try:
-            return await asyncio.wait_for(loop.run_in_executor(self._worker, fn), self.config.request_timeout_s)
+            return await asyncio.wait_for(loop.run_in_executor(self._worker, _LetGo(fn)), self.config.request_timeout_s)
         except asyncio.TimeoutError:
             raise ProtocolError(ErrorCode.TIMEOUT,
                                 f"the model took longer than {self.config.request_timeout_s} s") from None
