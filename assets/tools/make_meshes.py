@@ -219,8 +219,9 @@ def banana_parts(n: int = 7) -> list[Part]:
 def main(root: Path = ROOT) -> None:
     """Write every generated mesh under ``root`` (the library folder by default)."""
     out = {
+        # standing on its base disc (as wide as the wall's foot), its sectors off the table: 4 resting contacts, not 60
         "bowl/bowl.obj": revolve_shell([(0.04, 0.0), (0.058, 0.012), (0.07, 0.028), (0.076, 0.045), (0.078, 0.055)],
-                                       thickness=0.005, sectors=14, bands=2),
+                                       thickness=0.005, sectors=14, bands=2, wall_lift=0.002),
         "cup/cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=12),
         # poured from with balls inside: eight sectors and a wall off the table, for fewer contacts
         "cup/pouring_cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=8, base=0.004,
@@ -235,7 +236,8 @@ def main(root: Path = ROOT) -> None:
                                                  (0.03, 0.215), (0.014, 0.24), (0.012, 0.3), (0.0, 0.3)]),
         "plate/plate.obj": revolve_shell([(0.07, 0.0), (0.10, 0.012), (0.115, 0.02)], thickness=0.004, sectors=16,
                                          bands=1, base=0.006),
-        "dustbin/dustbin.obj": revolve_shell([(0.11, 0.0), (0.13, 0.26)], thickness=0.006, sectors=14, base=0.01),
+        # wide enough at the bottom (22.8 cm inside) for a 21.5 cm bottle to lie flat: four thrown in settle below the rim
+        "dustbin/dustbin.obj": revolve_shell([(0.12, 0.0), (0.14, 0.26)], thickness=0.006, sectors=14, base=0.01),
         "pen_holder/pen_holder.obj": revolve_shell([(0.04, 0.0), (0.04, 0.11)], thickness=0.004, sectors=12,
                                                    base=0.008),
         "nesting_doll/doll.obj": revolve_solid([(0.0, 0.0), (0.03, 0.0), (0.04, 0.025), (0.038, 0.055),
