@@ -19,6 +19,7 @@ from dojo.compiler.asset_geometry import convex_hull
 
 ROOT = Path(__file__).resolve().parents[1]
 Part = np.ndarray  # (n, 3) vertices of one convex part
+WALL_LIFT = 0.002  # how far a hollow's wall sectors stay off the table when it stands on its base disc
 
 
 def ring(r: float, z: float, n: int, a0: float = 0.0, a1: float = 2 * math.pi, closed: bool = True) -> np.ndarray:
@@ -80,6 +81,20 @@ def upside_down(parts: list[Part]) -> list[Part]:
     """Turn parts over (z -> top - z) so that the object still rests on z = 0."""
     top = max(float(p[:, 2].max()) for p in parts)
     return [p * np.array([1.0, -1.0, -1.0]) + np.array([0.0, 0.0, top]) for p in parts]
+
+
+def on_feet(parts: list[Part], radius: float, n: int = 3, lift: float = 0.0015, half: float = 0.0015) -> list[Part]:
+    """Parts raised by ``lift`` onto ``n`` small inverted pyramids spaced around ``radius``, each touching the table
+    at its apex: an object that would rest on a ring of wall sectors (an upturned cup on its rim, 4 contacts a
+    sector) rests on 3 points instead, as steady and far cheaper to simulate."""
+    raised = [p + np.array([0.0, 0.0, lift]) for p in parts]
+    feet = []
+    for k in range(n):
+        a = 2 * math.pi * (k + 0.5) / n
+        x, y = radius * math.cos(a), radius * math.sin(a)
+        base = [(x + dx, y + dy, lift) for dx in (-half, half) for dy in (-half, half)]
+        feet.append(np.asarray([*base, (x, y, 0.0)]))
+    return raised + feet
 
 
 def lying_along_x(parts: list[Part]) -> list[Part]:
@@ -219,27 +234,30 @@ def banana_parts(n: int = 7) -> list[Part]:
 def main(root: Path = ROOT) -> None:
     """Write every generated mesh under ``root`` (the library folder by default)."""
     out = {
-        # standing on its base disc (as wide as the wall's foot), its sectors off the table: 4 resting contacts, not 60
+        # Hollows that stand on their base disc (as wide as the wall's foot) keep their wall sectors WALL_LIFT off the
+        # table: 4 resting contacts instead of 4 more per sector (a bowl: 60).
         "bowl/bowl.obj": revolve_shell([(0.04, 0.0), (0.058, 0.012), (0.07, 0.028), (0.076, 0.045), (0.078, 0.055)],
-                                       thickness=0.005, sectors=14, bands=2, wall_lift=0.002),
-        "cup/cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=12),
+                                       thickness=0.005, sectors=14, bands=2, wall_lift=WALL_LIFT),
+        "cup/cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=12, wall_lift=WALL_LIFT),
         # poured from with balls inside: eight sectors and a wall off the table, for fewer contacts
         "cup/pouring_cup.obj": revolve_shell([(0.03, 0.0), (0.04, 0.10)], thickness=0.003, sectors=8, base=0.004,
-                                             wall_lift=0.002),
+                                             wall_lift=WALL_LIFT),
         # a straight band at the (upturned) top: the pads grip it along a line, so the cup cannot pivot in them
-        "cover/cover_cup.obj": upside_down(revolve_shell([(0.03, 0.0), (0.03, 0.03), (0.04, 0.10)], thickness=0.003,
-                                                         sectors=12, bands=2)),
-        "mug/mug_body.obj": revolve_shell([(0.04, 0.0), (0.04, 0.095)], thickness=0.005, sectors=12),
+        "cover/cover_cup.obj": on_feet(upside_down(revolve_shell([(0.03, 0.0), (0.03, 0.03), (0.04, 0.10)],
+                                                                 thickness=0.003, sectors=12, bands=2)),
+                                       radius=0.0385),
+        "mug/mug_body.obj": revolve_shell([(0.04, 0.0), (0.04, 0.095)], thickness=0.005, sectors=12,
+                                          wall_lift=WALL_LIFT),
         "bottle/bottle.obj": revolve_solid([(0.0, 0.0), (0.033, 0.0), (0.034, 0.003), (0.034, 0.14), (0.026, 0.17),
                                             (0.013, 0.19), (0.013, 0.215), (0.0, 0.215)]),
         "bottle/wine_bottle.obj": revolve_solid([(0.0, 0.0), (0.036, 0.0), (0.037, 0.004), (0.037, 0.19),
                                                  (0.03, 0.215), (0.014, 0.24), (0.012, 0.3), (0.0, 0.3)]),
         "plate/plate.obj": revolve_shell([(0.07, 0.0), (0.10, 0.012), (0.115, 0.02)], thickness=0.004, sectors=16,
-                                         bands=1, base=0.006),
-        # wide enough at the bottom (22.8 cm inside) for a 21.5 cm bottle to lie flat: four thrown in settle below the rim
+                                         bands=1, base=0.006, wall_lift=WALL_LIFT),
+        # wide enough at the bottom (22.8 cm inside) for a 21.5 cm bottle to lie flat: four settle below the rim
         "dustbin/dustbin.obj": revolve_shell([(0.12, 0.0), (0.14, 0.26)], thickness=0.006, sectors=14, base=0.01),
         "pen_holder/pen_holder.obj": revolve_shell([(0.04, 0.0), (0.04, 0.11)], thickness=0.004, sectors=12,
-                                                   base=0.008),
+                                                   base=0.008, wall_lift=WALL_LIFT),
         "nesting_doll/doll.obj": revolve_solid([(0.0, 0.0), (0.03, 0.0), (0.04, 0.025), (0.038, 0.055),
                                                 (0.026, 0.075), (0.03, 0.095), (0.026, 0.115), (0.0, 0.125)]),
         "fruit/pear.obj": revolve_solid([(0.0, 0.0), (0.016, 0.0), (0.028, 0.006), (0.037, 0.025), (0.034, 0.05), (0.022, 0.07),
@@ -249,7 +267,7 @@ def main(root: Path = ROOT) -> None:
                                       (0.01, 0.052), (0.0, 0.056)], n=12),
         "pen/pen_cap.obj": lying_along_x(revolve_shell([(0.0078, 0.0), (0.0078, 0.035)], thickness=0.0015,
                                                        sectors=12, base=0.003)),
-        "stationery/tape_roll.obj": annulus(0.05, 0.037, 0.048, sectors=16),
+        "stationery/tape_roll.obj": on_feet(annulus(0.05, 0.037, 0.048, sectors=16), radius=0.0435),
         "cleaning/spray_bottle.obj": revolve_solid([(0.0, 0.0), (0.035, 0.0), (0.035, 0.15), (0.02, 0.17),
                                                     (0.015, 0.2), (0.0, 0.2)]),
     }
