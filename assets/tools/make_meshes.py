@@ -86,7 +86,7 @@ def upside_down(parts: list[Part]) -> list[Part]:
 def on_feet(parts: list[Part], radius: float, n: int = 3, lift: float = 0.0015, half: float = 0.0015) -> list[Part]:
     """Parts raised by ``lift`` onto ``n`` small inverted pyramids spaced around ``radius``, each touching the table
     at its apex: an object that would rest on a ring of wall sectors (an upturned cup on its rim, 4 contacts a
-    sector) rests on 3 points instead, as steady and far cheaper to simulate."""
+    sector) rests on ``n`` points instead (3 by default: a tripod never rocks), far cheaper to simulate."""
     raised = [p + np.array([0.0, 0.0, lift]) for p in parts]
     feet = []
     for k in range(n):
