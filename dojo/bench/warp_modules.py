@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
-from dojo.backends.mjx.warp_launches import Launches, recorded_launches, recorded_tick
+from dojo.backends.mjx.warp_launches import Launches, recorded_tick
 
 log = logging.getLogger(__name__)
 NAMED_KERNEL = "__locals__"
@@ -46,7 +46,7 @@ def _module_name(module: Any) -> str:
 def bucket_modules(bucket: Bucket) -> set[str]:
     """The Warp modules one step of `bucket`'s model launches (`warp_launches`, on Warp's CPU device: any machine),
     by name; a module launched with several block sizes counts once."""
-    return _module_names(recorded_launches(bucket, "cpu"))
+    return _module_names(recorded_tick(bucket, "cpu")[0])
 
 
 def _module_names(launches: Launches) -> set[str]:

@@ -64,7 +64,7 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
 
 def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, dict[str, int]]:
     """On `device` (Warp's current device when None), one world of `bucket`'s model with the engine's contact and
-    row capacities: the kernels one physics step launches (`recorded_launches`), and how many kernels (launches
+    row capacities: the kernels one physics step launches (by module and block size), and how many kernels (launches
     over non-empty grids, one solver iteration) a step, a whole forward and a lane's end-of-tick refresh
     (`streams.refresh`) launch, and so a lane's tick: its sub-steps and the refresh (besides its ~20 copies in and
     one restore per state field). One model and data serve all three records.
@@ -93,8 +93,3 @@ def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, 
             counts[part] = len(counted)
     counts["tick"] = bucket.n_substeps * counts["step"] + counts["refresh"]
     return launches, counts
-
-
-def recorded_launches(bucket: Bucket, device: str | None = None) -> Launches:
-    """The kernels one step of one world of `bucket`'s model launches (`recorded_tick`)."""
-    return recorded_tick(bucket, device)[0]
