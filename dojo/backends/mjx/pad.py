@@ -189,10 +189,17 @@ def _unioned(root: ET.Element) -> list[ET.Element]:
 
 
 def _content(el: ET.Element) -> str:
-    """What an asset element defines, without its name: its attributes and children, canonically."""
+    """What an asset element defines, without its name: its attributes and children, canonically.
+
+    The layout around it is not content: `ET.tostring` writes an element's tail (the whitespace up to the next
+    element), which differs with the element's place in its file, so two plans defining the same mesh, one of them
+    last in its asset section, would count as different and be split into two structures."""
     body = copy.deepcopy(el)
     body.attrib.pop("name", None)
-    body.attrib = dict(sorted(body.attrib.items()))
+    for part in body.iter():
+        part.attrib = dict(sorted(part.attrib.items()))
+        part.text = part.text.strip() if part.text else None
+        part.tail = None
     return hashlib.sha256(ET.tostring(body, encoding="unicode").encode()).hexdigest()[:12]
 
 
