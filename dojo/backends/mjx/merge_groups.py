@@ -38,8 +38,9 @@ and 0.25 (17 buckets) 224k; at 16,384, 0.5 ran 643k against 545k for the 29 sepa
 At the protocol's 1,200 environments on the split tick (`backend.streams`, H200, 2026-12-02) 1.0 was the fastest:
 0.5 (13 buckets) 254k, 0.75 (10) 267k, 1.0 (9) 272k, 1.5 and 2.0 (7) 221k. At 1.0 later that day: 279k at 1,200,
 556k at 4,096 and 717k at 16,384, where the 29 separate buckets had run 1.43-1.49M on streams (physics only, other
-days): merging stops paying as the GPU fills. 0.5 stays the default until both growths and the separate buckets
-are measured in one run at the larger batches."""
+days): merging stops paying as the GPU fills. In one run at 16,384 (H200, 2026-12-02, fewer resting contacts by
+then) the 29 separate buckets on the split tick ran 1.456M and growth 1.0 974k. 0.5 stays the default growth;
+`merge` itself is off by default."""
 
 
 @dataclass(frozen=True)
