@@ -233,9 +233,12 @@ def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float) -> list[t
     members_of: dict[str, list[Member]] = {}
     signatures: dict[str, str] = {}
     for task in sorted(by_task):
-        for k, (_, alike) in enumerate(_task_members(by_task[task], task, growth)):
+        for _, alike in _task_members(by_task[task], task, growth):
+            # Named by content (its least plan hash), not by its place in the plans' order: `cluster` breaks ties
+            # by these keys, so that the same plans in another order give the same clusters.
+            first = min(m.plan.hash for m in alike)
             for signature, members in _padded_members([m.plan for m in alike], robot, every_object=True).items():
-                key = f"{task}:{k}:{signature[:16]}"
+                key = f"{task}:{first[:16]}:{signature[:16]}"
                 units.append(Unit.measure(key, [m.plan for m in members], members[0].padded, members[0].model))
                 members_of[key], signatures[key] = members, signature
     out: list[tuple[str, list[Member]]] = []
