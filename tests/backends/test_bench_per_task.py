@@ -20,7 +20,6 @@ def test_several_tasks_get_per_task_rates(tmp_path):
         assert rates["physics_steps_per_cpu_s"] == 20 * rates["interactions_per_cpu_s"]  # 500 Hz under 25 Hz
 
 
-
 def _bench_error(cwd, folder: str, tasks: str) -> str:
     result = subprocess.run([sys.executable, "-m", "dojo.cli.main", "bench", "sim", "backend=mujoco",
                              f"plans={folder}", f"tasks={tasks}", "num_envs=2", "steps=1"],

@@ -111,7 +111,6 @@ def test_merged_buckets_are_the_same_whatever_the_order_of_the_plans():
         assert got == want
 
 
-
 def test_a_task_padded_in_several_groups_merges_the_same_whatever_the_order_of_its_plans():
     """`general_pickup` draws other objects each episode, so its plans pad in several groups, and with growth 1.0
     those merge with one another: the clusters must not depend on which group came first (they did, when a unit
@@ -128,6 +127,7 @@ def test_a_task_padded_in_several_groups_merges_the_same_whatever_the_order_of_i
         got = [(b.key, sorted(m.plan.hash for m in b.members))
                for b in make_buckets(shuffled, merge=True, growth=1.0)]
         assert got == want
+
 
 SIMULATION_TASKS = ("build_tower", "classify_objects", "cover_blocks", "deposit_coin", "dlc", "fasten_screws",
                     "general_pickup", "imitate_sorting_sequence", "insert_key", "insert_tubes",

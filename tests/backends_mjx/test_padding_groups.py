@@ -57,7 +57,6 @@ def test_plans_padded_together_keep_their_own_meshes_under_one_name():
         np.testing.assert_allclose(vertices(member.model, geom), vertices(own, own.geom("clutter_0/g0").id))
 
 
-
 def test_one_mesh_is_one_slot_wherever_it_stands_in_its_plans_asset_section():
     """The same mesh, last in one plan's asset section and followed by another mesh in the next (so written with
     other whitespace after it), is one geometry: one slot, not two."""
@@ -67,6 +66,7 @@ def test_one_mesh_is_one_slot_wherever_it_stands_in_its_plans_asset_section():
     slots = [bucket.model.body(i).name for i in range(bucket.model.nbody)
              if bucket.model.body(i).name.startswith("slot")]
     assert len(slots) == 2  # the shared tetrahedron and the larger one
+
 
 def test_padding_groups_keep_each_bucket_within_the_growth_bound():
     plans = [mesh_plan(seed, tuple(1.0 + 0.1 * seed + 0.01 * k for k in range(3))) for seed in range(4)]
