@@ -68,6 +68,21 @@ def test_one_mesh_is_one_slot_wherever_it_stands_in_its_plans_asset_section():
     assert len(slots) == 2  # the shared tetrahedron and the larger one
 
 
+def test_plans_padded_together_give_the_same_buckets_whatever_their_order():
+    """A slot kind's template (whose parked copies and site sizes every member gets) is not the first plan's in the
+    given order: `random` plans whose clutter differs pad to the same structures, so to the same bucket keys, in any
+    order."""
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load([])
+    plans = [compile_plan(library, library.get("task", "push_t"), "random", seed) for seed in range(4)]
+    want = [(b.key, sorted(m.plan.hash for m in b.members)) for b in make_buckets(plans)]
+    for seed in range(2):
+        shuffled = random.Random(seed).sample(plans, len(plans))
+        assert [(b.key, sorted(m.plan.hash for m in b.members)) for b in make_buckets(shuffled)] == want
+
+
 def test_padding_groups_keep_each_bucket_within_the_growth_bound():
     plans = [mesh_plan(seed, tuple(1.0 + 0.1 * seed + 0.01 * k for k in range(3))) for seed in range(4)]
     own = {p.hash: p.model() for p in plans}

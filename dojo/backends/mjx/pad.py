@@ -288,7 +288,10 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False) -> l
     need: Counter[str] = Counter()
     templates: dict[str, ET.Element] = {}
     inner: dict[str, list[tuple[str, str]]] = {}  # key -> its excludes, relative to the slot
-    for bodies, ks, ex in zip(slotted, keys, excludes):
+    # Plans by hash, not in the given order: a key's template (its first body) gives its parked copies and its
+    # sites' sizes (static), so the same plans in another order must pick the same one.
+    for k in sorted(range(len(plans)), key=lambda k: plans[k].hash):
+        bodies, ks, ex = slotted[k], keys[k], excludes[k]
         for key, count in Counter(ks).items():
             need[key] = max(need[key], count)
         for body, key in zip(bodies, ks):
