@@ -44,8 +44,8 @@ def _module_name(module: Any) -> str:
 
 
 def bucket_modules(bucket: Bucket) -> set[str]:
-    """The Warp modules one step of `bucket`'s model launches (`warp_launches`, on Warp's CPU device: any machine),
-    by name; a module launched with several block sizes counts once."""
+    """The Warp modules a step, a forward and a lane's refresh of `bucket`'s model launch (`warp_launches`, on
+    Warp's CPU device: any machine), by name; a module launched with several block sizes counts once."""
     return _module_names(recorded_tick(bucket, "cpu")[0])
 
 
@@ -53,12 +53,20 @@ def _module_names(launches: Launches) -> set[str]:
     return {_module_name(module) for module in launches.values()}
 
 
-def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:
+def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int = 1) -> dict[str, Any]:
     """The modules of every bucket: how many in all, how many every bucket shares, how many of each generated
     kernel, and per bucket its DoFs, rows, the modules no other bucket needs and the kernels its lane launches
-    (`recorded_tick`: a step, a forward, the lane's refresh, a tick), from one recording each."""
+    (`recorded_tick`: a step, a forward, the lane's refresh, a tick), from one recording each. With `arch`, every
+    module is also compiled for `sm_<arch>` into Warp's kernel cache, `jobs` at a time (`kernel_cache`), under
+    `ahead`."""
     start = time.perf_counter()
     recorded = {b.key: recorded_tick(b, "cpu") for b in buckets}
+    ahead = {}
+    if arch is not None:
+        from dojo.backends.mjx.kernel_cache import compile_ahead
+
+        every = {key: module for launches, _ in recorded.values() for key, module in launches.items()}
+        ahead = {"ahead": compile_ahead(every, int(arch), jobs)}
     sets = {key: _module_names(launches) for key, (launches, _) in recorded.items()}
     union = set().union(*sets.values())
     shared = set.intersection(*sets.values()) if sets else set()
@@ -70,13 +78,14 @@ def kernel_figures(buckets: Sequence[Bucket]) -> dict[str, Any]:
     kinds = Counter(m.split(NAMED_KERNEL)[0] for m in union if NAMED_KERNEL in m)
     return {"modules": len(union), "shared_by_every_bucket": len(shared),
             "generated_kernels": dict(kinds.most_common()), "per_bucket": per_bucket,
-            "seconds": time.perf_counter() - start}
+            "seconds": time.perf_counter() - start, **ahead}
 
 
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`), bucketed as the mjx
     backend would (`backend.merge`, `backend.merge_growth`; `dof_quantum`: their DoFs rounded up, `dof_rounding`),
-    and the Warp modules their steps need."""
+    and the Warp modules their steps need; with `arch`, those modules compiled for that GPU architecture into
+    Warp's kernel cache (`jobs` at a time), on this machine, GPU or not."""
     from importlib.metadata import version
 
     from dojo.backends.mjx import merge_growth
@@ -99,4 +108,4 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "merge": merge,
             "dof_quantum": quantum,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
-            **kernel_figures(buckets)}
+            **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1))}

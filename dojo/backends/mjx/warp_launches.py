@@ -64,10 +64,11 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
 
 def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, dict[str, int]]:
     """On `device` (Warp's current device when None), one world of `bucket`'s model with the engine's contact and
-    row capacities: the kernels one physics step launches (by module and block size), and how many kernels (launches
-    over non-empty grids, one solver iteration) a step, a whole forward and a lane's end-of-tick refresh
-    (`streams.refresh`) launch, and so a lane's tick: its sub-steps and the refresh (besides its ~20 copies in and
-    one restore per state field). One model and data serve all three records.
+    row capacities: the kernels a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`)
+    launch (by module and block size: every module an engine of this bucket loads for its physics), and how many
+    kernels (launches over non-empty grids, one solver iteration) each of the three launches, and so a lane's tick:
+    its sub-steps and the refresh (besides its ~20 copies in and one restore per state field). One model and data
+    serve all three records.
 
     Why the counts: a lane's tick on the GPU is a graph of these launches, and where lanes are small their number
     weighs on its pace beside their arithmetic (README, speed); this counts a change to the tick before a GPU
@@ -88,7 +89,7 @@ def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, 
         for part, run in (("step", lambda: mjw.step(model, data)), ("forward", lambda: mjw.forward(model, data)),
                           ("refresh", lambda: refresh(wp, mjw, model, data))):
             counted: list[Any] = []
-            with _recording(wp, launches if part == "step" else {}, counted):
+            with _recording(wp, launches, counted):
                 run()
             counts[part] = len(counted)
     counts["tick"] = bucket.n_substeps * counts["step"] + counts["refresh"]
