@@ -74,3 +74,17 @@ def test_a_lanes_tick_is_counted_in_launches_its_refresh_lighter_than_a_forward(
     counts = kernel_figures([bucket])["per_bucket"][bucket.key]["launches"]
     assert counts["step"] > counts["forward"] > 2 * counts["refresh"] > 0
     assert counts["tick"] == bucket.n_substeps * counts["step"] + counts["refresh"]
+
+
+@needs_warp
+def test_the_modules_of_a_lanes_refresh_are_recorded_too():
+    """An engine loads every module its lanes launch, the refresh's included: `stack_blocks`' grippers are tendons,
+    whose speeds the refresh brings up to date with a kernel of our own (`lane_kernels`), which a step never
+    launches. A cold start compiles it, so `dojo bench kernels` counts it and `arch=` compiles it."""
+    from dojo.bench.warp_modules import bucket_modules
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    library = SpecLibrary.load()
+    bucket = make_buckets([compile_plan(library, library.get("task", "stack_blocks"), "standard", 0)])[0]
+    assert any(name.startswith("dojo.backends.mjx.lane_kernels") for name in bucket_modules(bucket))
