@@ -61,12 +61,6 @@ def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int
     `ahead`."""
     start = time.perf_counter()
     recorded = {b.key: recorded_tick(b, "cpu") for b in buckets}
-    ahead = {}
-    if arch is not None:
-        from dojo.backends.mjx.kernel_cache import compile_ahead
-
-        every = {key: module for launches, _ in recorded.values() for key, module in launches.items()}
-        ahead = {"ahead": compile_ahead(every, int(arch), jobs)}
     sets = {key: _module_names(launches) for key, (launches, _) in recorded.items()}
     union = set().union(*sets.values())
     shared = set.intersection(*sets.values()) if sets else set()
@@ -76,9 +70,15 @@ def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int
                           "launches": recorded[b.key][1]}
                   for b in buckets}
     kinds = Counter(m.split(NAMED_KERNEL)[0] for m in union if NAMED_KERNEL in m)
-    return {"modules": len(union), "shared_by_every_bucket": len(shared),
-            "generated_kernels": dict(kinds.most_common()), "per_bucket": per_bucket,
-            "seconds": time.perf_counter() - start, **ahead}
+    figures = {"modules": len(union), "shared_by_every_bucket": len(shared),
+               "generated_kernels": dict(kinds.most_common()), "per_bucket": per_bucket,
+               "seconds": time.perf_counter() - start}
+    if arch is not None:
+        from dojo.backends.mjx.kernel_cache import compile_ahead
+
+        every = {key: module for launches, _ in recorded.values() for key, module in launches.items()}
+        figures["ahead"] = compile_ahead(every, int(arch), jobs)
+    return figures
 
 
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
