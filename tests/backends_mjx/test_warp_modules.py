@@ -88,3 +88,20 @@ def test_the_modules_of_a_lanes_refresh_are_recorded_too():
     library = SpecLibrary.load()
     bucket = make_buckets([compile_plan(library, library.get("task", "stack_blocks"), "standard", 0)])[0]
     assert any(name.startswith("dojo.backends.mjx.lane_kernels") for name in bucket_modules(bucket))
+
+
+@needs_warp
+def test_a_model_of_a_thousand_geoms_sorts_in_its_broadphase_and_is_recorded_all_the_same():
+    """MuJoCo Warp sweeps and prunes where a model has 1,000 geoms or more (every robot's union merged with
+    `backend.merge_growth=inf` did), sorting between launches with Warp's native sort; recorded, that sort read
+    bounds no launch had filled and failed ("Warp sort error: Invalid segment range"). It is skipped now, and
+    put back after."""
+    import warp
+
+    from dojo.bench.warp_modules import bucket_modules
+
+    sort = warp.utils.segmented_sort_pairs
+    bucket = make_buckets([toy_plan(clutter=("ball",) * 1000)])[0]
+    assert bucket.model.ngeom >= 1000
+    assert any(name.startswith("_sap_broadphase") for name in bucket_modules(bucket))
+    assert warp.utils.segmented_sort_pairs is sort

@@ -6,8 +6,9 @@ compiled variant) is a property of the bucket's model and capacities, and can be
 `dojo bench kernels` counts them this way, to judge how many modules a change of the buckets' structures saves.
 
 How. One world of the bucket steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
-block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch) and
-`wp.capture_while` / `wp.capture_if` running their bodies once; Warp's own functions are back when it returns.
+block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch),
+`wp.capture_while` / `wp.capture_if` running their bodies once and Warp's native sorts and scans skipped
+(`NATIVE_PASSES`); Warp's own functions are back when it returns.
 Nothing is compiled and nothing is simulated. MuJoCo Warp's step is capturable in a CUDA graph, so it never reads
 the device between launches and the recorded sequence is the real one. Checked against an H100's kernel cache for
 the 24 simulation tasks (2026-11-28): 95 of the 96 kernel names recorded on Warp's CPU device were the modules
@@ -26,6 +27,10 @@ import numpy as np
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
 
+NATIVE_PASSES = ("segmented_sort_pairs", "radix_sort_pairs", "array_scan")
+"""Warp's utilities that MuJoCo Warp calls between its launches (the sweep-and-prune broadphase of models of 1,000
+geoms or more sorts and scans): they run Warp's own compiled code, no module, and here they would read arrays that
+no recorded launch has filled (a sort of uninitialised segment bounds fails), so they too are skipped."""
 Launches = dict[tuple[str, Any], Any]
 """{(module name, block size): Warp module}; block size None is the launch's default."""
 
@@ -59,6 +64,8 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
     for name, stand_in in (("launch", launch), ("launch_tiled", launch), ("capture_while", capture_while),
                            ("capture_if", capture_if)):
         stack.enter_context(mock.patch.object(wp, name, stand_in))
+    for name in NATIVE_PASSES:
+        stack.enter_context(mock.patch.object(wp.utils, name, lambda *args, **kwargs: None))
     return stack
 
 
