@@ -34,7 +34,7 @@ def _module(tmp_path, name: str):
 
 
 @pytest.fixture
-def warp_cache(tmp_path, monkeypatch):
+def warp_cache(tmp_path):
     """Warp's kernel cache moved to an empty folder for the test, and back afterwards."""
     import warp as wp
 
