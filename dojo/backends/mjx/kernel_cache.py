@@ -11,7 +11,10 @@ How. Each recorded (module, block size) is compiled for `sm_<arch>` by Warp's ow
 in the folder `Module.load` looks for on a device of that architecture: `<cache>/<module id>/<module id>.sm<arch>
 .cubin`, with the module's metadata beside it. The module id carries a hash of the module's source and options, so
 a cache compiled for other versions of warp-lang or MuJoCo Warp, or for other models, is simply not found and the
-GPU compiles as before: stale entries cost nothing but disk.
+GPU compiles as before: stale entries cost nothing but disk. Warp's public `compile_aot_module` compiles a module
+for its default block size only, and MuJoCo Warp launches many with their own, so this calls the step beneath it
+(`Module._compile`, named by `_get_compile_output_name`); `tests/backends_mjx/test_kernel_cache.py` checks that
+the file it writes is the one the public call names.
 
 Measured (2026-12-02): `dojo bench kernels plans=DIR arch=90 jobs=2` compiled the 97 modules of the bench's 48
 plans (29 buckets) on the 2-core CI machine in 279.5 s beside other work (76 MB with their sources); an H200 given
