@@ -48,14 +48,16 @@ def _get(cfg: Any, key: str, default: Any = None) -> Any:
 
 
 def bench_plans(cfg: Any) -> list[Any]:
-    """The plans of the mix: the `plans` folder's files, or seed 0 of each task in each setting."""
+    """The plans of the mix: the `plans` folder's (`plan_files`: a folder of plan files or `dojo compile`'s output),
+    or seed 0 of each task in each setting."""
     from dojo.compiler.plan import Plan, compile_plan
     from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.suite_compile import plan_files
 
     tasks = _get(cfg, "tasks")
     settings = list(_get(cfg, "settings", ("standard", "random")))
     if _get(cfg, "plans"):
-        plans = [Plan.load(p) for p in sorted(Path(_get(cfg, "plans")).glob("*.json")) if p.name != "index.json"]
+        plans = [Plan.load(p) for p in plan_files(Path(_get(cfg, "plans")))]
         return [p for p in plans if (not tasks or p.task in set(tasks)) and p.setting in settings]
     library = SpecLibrary.load()
     ids = list(tasks) if tasks else sorted(t.id for t in library.of_kind("task"))

@@ -41,7 +41,6 @@ the timings and reported apart.
 from __future__ import annotations
 
 import gc
-import json
 import logging
 import math
 import os
@@ -71,28 +70,18 @@ COUNTS = {"interactions": "control steps: one action applied in one environment"
 log = logging.getLogger(__name__)
 
 
-def _plan_files(folder: Path) -> list[Path]:
-    """The plan files of `folder`: where `dojo compile` wrote it (an `index.json` beside one folder per task), each
-    distinct plan of its episodes in the protocol's order, so that a bench runs the suite's own workload (the
-    random setting's scenes, the per-episode objects); else every `*.json` file in it, by name."""
-    index = folder / "index.json"
-    if not index.is_file():
-        return sorted(folder.glob("*.json"))
-    paths = [folder / entry["path"] for entry in json.loads(index.read_text())["plans"]]
-    return list(dict.fromkeys(paths))
-
-
 def load_plans(cfg: dict[str, Any]) -> list[Any]:
     """Plans from `cfg['plans']` (a folder of plan files or `dojo compile`'s output, filtered by `tasks`, at most
     `episodes` a task when given), else compiled: `episodes` standard-setting seeds of each task in `tasks` (every
     built-in task when empty)."""
     from dojo.compiler.plan import Plan, compile_plan
     from dojo.compiler.spec_library import SpecLibrary
+    from dojo.compiler.suite_compile import plan_files
 
     tasks = list(cfg.get("tasks") or [])
     if cfg.get("plans"):
         folder = Path(cfg["plans"])
-        found = [Plan.load(p) for p in _plan_files(folder)]
+        found = [Plan.load(p) for p in plan_files(folder)]
         plans = [p for p in found if not tasks or p.task in tasks]
         if not plans:
             # A bench of nothing would fail later, far from the cause (a folder gone or mistyped, a task filter

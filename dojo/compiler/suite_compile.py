@@ -145,6 +145,17 @@ class CompileStats:
     episodes: tuple[PlannedEpisode, ...] = ()
 
 
+def plan_files(folder: Path) -> list[Path]:
+    """The plan files of `folder`: where `compile_suite` wrote it (`index.json` beside one folder per task), each
+    distinct plan of its episodes in the protocol's order, so that a bench runs the suite's own workload (the
+    random setting's scenes, the per-episode objects); else every `*.json` file in it, by name."""
+    index = folder / "index.json"
+    if not index.is_file():
+        return sorted(folder.glob("*.json"))
+    paths = [folder / entry["path"] for entry in json.loads(index.read_text())["plans"]]
+    return list(dict.fromkeys(paths))
+
+
 def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int | str = 1, seeds: list[int] | None = None,
                   episodes: int | None = None, demo_lengths: dict[str, list[int]] | None = None,
                   tasks: Collection[str] | None = None, progress: Callable[[int, int], None] | None = None,

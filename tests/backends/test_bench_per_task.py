@@ -62,3 +62,7 @@ def test_a_compiled_suite_folder_is_benched_on_the_plans_its_index_lists(tmp_pat
     assert {p.setting for p in load_plans({"plans": str(tmp_path), "episodes": None})} == {"standard", "random"}
     kept = load_plans({"plans": str(tmp_path), "episodes": 1, "tasks": ["push_t"]})
     assert [p.hash for p in kept] == [next(e["hash"] for e in index if e["task"] == "push_t")]
+    # `dojo bench render` reads the same folder through the same index
+    from dojo.bench.render_bench import bench_plans
+
+    assert [p.hash for p in bench_plans({"plans": str(tmp_path)})] == distinct
