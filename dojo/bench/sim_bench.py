@@ -341,19 +341,20 @@ def _cpu_figures(cpu: dict[str, Any], substeps: float) -> dict[str, Any]:
             **{k: cpu[k] for k in ("reset_ms_mean", "reset_ms_max", "load_average_1min")}}
 
 
-def jax_memory_settings(modes: Sequence[str], engine_streams: bool = False) -> dict[str, str]:
-    """JAX's share of the GPU beside the stream engines, which allocate through Warp: JAX takes 75% of the GPU
-    when it starts, by default. With stream modes alone JAX holds a few control arrays and reserves nothing up
-    front (the 24-task mix merged into 13 buckets at 16,384 environments ran out of memory in its second engine on
-    an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets half, as it does when the JAX engine's
-    own physics runs on streams (`engine_streams`)."""
-    from dojo.backends.mjx import STREAMS_JAX_MEMORY
+def gpu_settings(modes: Sequence[str], engine_streams: bool = False) -> dict[str, str]:
+    """The environment the GPU side starts with. JAX's share of the GPU beside the stream engines, which allocate
+    through Warp: JAX takes 75% of the GPU when it starts, by default. With stream modes alone JAX holds a few
+    control arrays and reserves nothing up front (the 24-task mix merged into 13 buckets at 16,384 environments ran
+    out of memory in its second engine on an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets
+    half, as it does when the JAX engine's own physics runs on streams (`engine_streams`). Wherever streams run,
+    the CUDA driver's hardware queues too (`STREAMS_ENVIRONMENT`)."""
+    from dojo.backends.mjx import STREAMS_ENVIRONMENT, STREAMS_JAX_MEMORY
 
     if not STREAM_MODES & set(modes):
-        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY} if engine_streams else {}
+        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT} if engine_streams else {}
     if set(modes) <= STREAM_MODES:
-        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY}
+        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **STREAMS_ENVIRONMENT}
+    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT}
 
 
 def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:
@@ -368,7 +369,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
 
     on_streams = bool(STREAM_MODES & set(modes))
     engine_streams = bool(backend.get("streams", False))
-    for name, value in jax_memory_settings(modes, engine_streams).items():  # before JAX starts on the GPU
+    for name, value in gpu_settings(modes, engine_streams).items():  # before JAX or Warp starts on the GPU
         os.environ.setdefault(name, value)
     enable_compilation_cache(cfg.get("cache_dir"))
     impl = choose_impl(backend.get("impl"))
@@ -445,14 +446,28 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
         substeps = float(np.mean([p.n_substeps for p in plans]))
         out["cpu"] = {"backend": "mujoco", "num_envs": cpu_envs, "steps": cpu_steps, "threads": cpu["threads"],
                       **_cpu_figures(cpu, substeps)}
+    out["ratios"] = bench_ratios(out)
+    return out
+
+
+def bench_ratios(out: dict[str, Any]) -> dict[str, float]:
+    """Each measured way over the others it is compared with, by interactions per second. The stream modes are
+    also set against the one-stream run of the separate buckets (`streams`' `serial`: every bucket's graphs one
+    after another, the homogeneous mode of the Warp engine), so that one run of `modes=[streams,merged_streams]`
+    answers "the mix as one batch against its buckets in turn" even where the jitted `homogeneous`, a compile per
+    bucket, is too slow to set up (the protocol's 222 buckets)."""
     ratios = {}
     for a, b in (("heterogeneous", "homogeneous"), ("heterogeneous", "cpu"), ("homogeneous", "cpu"),
                  ("streams", "homogeneous"), ("streams", "heterogeneous"), ("merged", "heterogeneous"),
                  ("merged", "homogeneous"), ("merged_streams", "homogeneous"), ("merged_streams", "streams")):
         if a in out and b in out:
             ratios[f"{a}_over_{b}"] = out[a]["interactions_per_s"] / out[b]["interactions_per_s"]
+    if "streams" in out:
+        for a in ("streams", "merged_streams"):
+            if a in out:
+                ratios[f"{a}_over_streams_serial"] = (out[a]["interactions_per_s"]
+                                                      / out["streams"]["serial"]["interactions_per_s"])
     if "alone" in out and out["alone"]["engine"] in out:
         ratios[f"{out['alone']['engine']}_over_ideal_mix"] = (out[out["alone"]["engine"]]["interactions_per_s"]
                                                               / out["alone"]["ideal_mix"]["interactions_per_s"])
-    out["ratios"] = ratios
-    return out
+    return ratios

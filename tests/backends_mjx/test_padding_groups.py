@@ -11,7 +11,7 @@ import numpy as np
 from conftest import toy_plan
 
 from dojo.backends.mjx.bucket import make_buckets
-from dojo.backends.mjx.merge_groups import Cost, Union, Unit, estimate, largest, padding_groups
+from dojo.backends.mjx.merge_groups import Cost, Union, Unit, cluster, estimate, largest, padding_groups
 from dojo.compiler.plan import Plan
 
 TETRAHEDRON = np.asarray([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.04
@@ -133,3 +133,32 @@ def test_a_union_grown_one_unit_at_a_time_matches_its_definition_at_every_step()
         union.add(unit)
         assert (union.estimate, union.ref) == (expected, ref) == (estimate(units[:k]), largest(units[:k]))
     assert verdicts == {True, False}  # the bound was met and missed along the way
+
+
+def test_clusters_merge_the_least_growth_first_ties_by_keys_and_a_refused_pair_stays_apart():
+    """Four units on one frame (10 DoFs, 10 geoms) with slots of 6 DoFs and 1 geom each: u1 and u2 the same slot
+    (growth 0 together), u3 another, u4 two of a third. At growth 0.5: u1+u2 first; then {u1,u2}+u4 and u3+u4 both
+    grow 0.27, and the tie goes to the lesser keys; the union of all four (34 DoFs against 22) is out of bounds."""
+    frame, slot = Cost(10, 10), Cost(6, 1)
+
+    def unit(key: str, slots: dict[str, int]) -> Unit:
+        n = sum(slots.values())
+        return Unit(key, (), Cost(10 + 6 * n, 10 + n), frame, slots, {k: slot for k in slots})
+
+    units = [unit("u3", {"y": 1}), unit("u1", {"x": 1}), unit("u4", {"z": 2}), unit("u2", {"x": 1})]
+    asked: list[tuple[tuple[str, ...], tuple[str, ...]]] = []
+
+    def one_structure(refused: set[frozenset[str]]):
+        def check(a: tuple[Unit, ...], b: tuple[Unit, ...]) -> bool:
+            asked.append((tuple(u.key for u in a), tuple(u.key for u in b)))
+            return not any(frozenset((x.key, y.key)) in refused for x in a for y in b)
+        return check
+
+    keys = lambda clusters: [tuple(u.key for u in c) for c in clusters]  # noqa: E731
+    assert keys(cluster(units, 0.5, one_structure(set()))) == [("u1", "u2", "u4"), ("u3",)]
+    assert asked == [(("u1",), ("u2",)), (("u1", "u2"), ("u4",))]
+    asked.clear()
+    # u2 and u4 cannot share a structure: {u1,u2}+u4 is refused, and u1+u4 (0.27) is then apart too
+    assert keys(cluster(units, 0.5, one_structure({frozenset(("u2", "u4"))}))) == [("u1", "u2"), ("u3", "u4")]
+    assert asked == [(("u1",), ("u2",)), (("u1", "u2"), ("u4",)), (("u3",), ("u4",))]
+    assert keys(cluster(units, 0.0, one_structure(set()))) == [("u1", "u2"), ("u3",), ("u4",)]

@@ -13,7 +13,7 @@ import sys
 import pytest
 from conftest import CACHE_DIR, toy_plan
 
-from dojo.bench.sim_bench import bench_sim, ideal_mix, split_batch
+from dojo.bench.sim_bench import bench_ratios, bench_sim, ideal_mix, split_batch
 from dojo.backends.mjx.bucket import make_buckets
 from dojo.backends.mjx.merge_groups import GROWTH
 
@@ -74,6 +74,18 @@ def test_the_ideal_mix_gives_each_task_its_share_of_the_time_at_its_own_rate():
     assert ideal["physics_steps_per_s"] == pytest.approx(7.5 / 0.05625)
     assert 10.0 < ideal["interactions_per_s"] < 40.0
     assert ideal_mix([{**tasks[0], "share": 1.0}])["interactions_per_s"] == pytest.approx(10.0)  # one task: itself
+
+
+def test_the_stream_modes_are_also_set_against_the_separate_buckets_in_turn():
+    """The protocol's figures of 2026-12-02 (H200, 1,200 envs): 222 lanes at 1,556 interactions/s concurrently and
+    334 in turn on one stream, 55 merged lanes at 3,289: the merged mix is 9.8x its buckets in turn, in one run."""
+    out = {"streams": {"interactions_per_s": 1556.0, "serial": {"interactions_per_s": 334.0}},
+           "merged_streams": {"interactions_per_s": 3289.0, "serial": {"interactions_per_s": 719.0}}}
+    ratios = bench_ratios(out)
+    assert ratios["merged_streams_over_streams_serial"] == pytest.approx(3289.0 / 334.0)
+    assert ratios["streams_over_streams_serial"] == pytest.approx(1556.0 / 334.0)
+    assert ratios["merged_streams_over_streams"] == pytest.approx(3289.0 / 1556.0)
+    assert bench_ratios({"merged_streams": out["merged_streams"]}) == {}  # no separate buckets measured: no ratio
 
 
 def test_split_batch_is_proportional_and_complete():
@@ -178,10 +190,13 @@ def test_a_lanes_kernels_are_summed_by_name_and_the_costliest_kept():
     assert kernel_table(launches, top=0)["kernels"] == [] and kernel_table([], top=3)["launches"] == 0
 
 
-def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run():
-    from dojo.bench.sim_bench import jax_memory_settings
+def test_jax_reserves_no_gpu_memory_when_only_warp_engines_run_and_streams_get_every_hardware_queue():
+    from dojo.bench.sim_bench import gpu_settings
 
-    assert jax_memory_settings(["heterogeneous"]) == {}
-    assert jax_memory_settings(["streams", "merged_streams"]) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    assert jax_memory_settings(["heterogeneous", "streams"]) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
-    assert jax_memory_settings(["heterogeneous"], engine_streams=True) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5"}
+    queues = {"CUDA_DEVICE_MAX_CONNECTIONS": "32"}
+    assert gpu_settings(["heterogeneous"]) == {}
+    assert gpu_settings(["streams", "merged_streams"]) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **queues}
+    assert gpu_settings(["heterogeneous", "streams"]) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5", **queues}
+    assert gpu_settings(["heterogeneous"], engine_streams=True) == {"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.5", **queues}
+
+
