@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import forward_hooks, toy_plan
 
-from dojo.backends.mjx.batch import Engine
+from dojo.backends.mjx.batch import Engine, EngineGroups, make_engine
 from dojo.backends.mjx.bucket import make_buckets
 from dojo.backends.mjx.cache import warp_installed
 
@@ -42,11 +42,13 @@ def _controls(buckets) -> list[np.ndarray]:
     return [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
 
 
-def _run_engine(buckets, streams: bool = False, refill: bool = False) -> Engine:
+def _run_engine(buckets, streams: bool = False, refill: bool = False, per_program: int | None = None
+                ) -> Engine | EngineGroups:
     """TICKS control steps from the members' initial states, the jitted tick ending as the backend's does (a
     forward); with `refill`, halfway through, environment 1 of each bucket starts another member's episode while
-    environment 2 pauses."""
-    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(), streams=streams)
+    environment 2 pauses. `per_program`: at most this many buckets in one program (`make_engine`)."""
+    engine = make_engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(), streams=streams,
+                         per_program=per_program)
     members = [np.arange(B) % len(b.members) for b in buckets]
     on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
     ctrl = _controls(buckets)
@@ -101,6 +103,24 @@ def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets)
 
 def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_tick(buckets) -> None:
     _assert_split_ticks_as_jitted(buckets)
+
+
+def test_buckets_in_groups_of_programs_tick_bit_for_bit_as_one_program(buckets) -> None:
+    """`backend.program_buckets`: the 3 buckets in programs of 2 and 1 (and on streams, of 1 each) reach the same
+    state as one program over all three, refill included, each group compiling once."""
+    one = _run_engine(buckets, refill=True)
+    assert isinstance(one, Engine)
+    for per_program, streams in ((2, False), (1, True)):
+        groups = _run_engine(buckets, streams=streams, refill=True, per_program=per_program)
+        assert isinstance(groups, EngineGroups) and len(groups.engines) == -(-len(buckets) // per_program)
+        assert [a.bucket.key for a in groups.arrays] == [a.bucket.key for a in one.arrays]
+        for a, b in zip(one.data, groups.data):
+            for name in ("qpos", "qvel", "time", "qacc_warmstart", "xpos", "geom_xpos"):
+                np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)),
+                                              err_msg=f"{name}, {per_program} a program")
+        assert groups.compilations() == 1 and not groups.overflows()
+    with pytest.raises(ValueError, match="at least 1"):
+        make_engine(buckets, [B] * len(buckets), "warp", per_program=0)
 
 
 def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted_tick() -> None:

@@ -58,7 +58,8 @@ def make(options: BackendOptions) -> MjxBackend:
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
     `merge_growth` (how much larger than its largest plan a padded or merged model may be; null:
     `merge_groups.GROWTH`), `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
-    MJX's own default) and `streams` (warp, one GPU: each bucket's physics on its own CUDA stream).
+    MJX's own default), `streams` (warp, one GPU: each bucket's physics on its own CUDA stream) and
+    `program_buckets` (at most this many buckets in one jitted program; null: `batch.PROGRAM_BUCKETS`).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     from pathlib import Path
@@ -84,7 +85,8 @@ def make(options: BackendOptions) -> MjxBackend:
                          merge=bool(options.settings.get("merge", False)),
                          merge_growth=merge_growth(options.settings.get("merge_growth")),
                          graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
-                         streams=bool(options.settings.get("streams", False)))
+                         streams=bool(options.settings.get("streams", False)),
+                         program_buckets=options.settings.get("program_buckets"))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
 

@@ -57,7 +57,7 @@ from dojo.backends.predicate_state import gather_state
 from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.program_types import ProgramLayout
 from dojo.backends.rotations import mat_to_quat
-from dojo.backends.mjx.batch import BucketArrays, Engine, Hooks, Tree
+from dojo.backends.mjx.batch import BucketArrays, Engine, EngineGroups, Hooks, Tree, make_engine
 from dojo.backends.mjx.bucket import Bucket, make_buckets
 from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache,
                                      graph_mode_name, warp_installed)
@@ -298,7 +298,7 @@ class MjxBackend(Backend):
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
                  merge: bool = False, merge_growth: float = GROWTH,
                  graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None,
-                 streams: bool = False) -> None:
+                 streams: bool = False, program_buckets: int | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
@@ -314,6 +314,8 @@ class MjxBackend(Backend):
         None: MJX's own default).
         `streams`: under `warp` on one GPU, every bucket's physics on its own CUDA stream between two jitted halves
         of the tick (`streams.StreamPhysics`) instead of one after another inside it.
+        `program_buckets`: at most this many buckets share one jitted program (`batch.make_engine`; None:
+        `batch.PROGRAM_BUCKETS`), so that a suite of many buckets compiles group by group.
         `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
         when one of them is among these, and `step` refuses the others."""
         self.action_modes = tuple(action_modes) if action_modes is not None else MODES
@@ -328,6 +330,7 @@ class MjxBackend(Backend):
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
         self.streams = bool(streams)
+        self.program_buckets = program_buckets
         log.info("mjx backend: %s%s", describe_impl(self.impl),
                  f", CUDA graphs: {graph_mode_name(self.graph_mode)}" if self.graph_mode is not None else "")
         if self.impl == "jax" and jax.default_backend() == "cpu" and warp_installed():
@@ -337,7 +340,7 @@ class MjxBackend(Backend):
                         "backend.impl=warp runs MuJoCo Warp's kernels on the CPU instead")
         self._known: dict[str, Any] = {}
         self._slots = SlotTable([], [], [], [])
-        self._engine: Engine | None = None
+        self._engine: Engine | EngineGroups | None = None
         self._buckets: list[Bucket] = []
         self._member: dict[str, tuple[int, int]] = {}
         self._stage_layouts: dict[str, ProgramLayout] = {}  # plan hash -> its program's stage and term names
@@ -406,15 +409,18 @@ class MjxBackend(Backend):
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
         start = time.perf_counter()
-        self._engine = Engine(self._buckets, capacity, self.impl, hooks, example,
-                              placement=self.placement, graph_mode=self.graph_mode, streams=self.streams)
+        self._engine = make_engine(self._buckets, capacity, self.impl, hooks, example, placement=self.placement,
+                                   graph_mode=self.graph_mode, streams=self.streams,
+                                   per_program=self.program_buckets)
         if self.render_config is not None:
             self._renderers = [BucketCameras(arr, self.render_config, self._image_buffers) if self.impl == "warp" else
                                CpuRenderer([m.model for m in arr.bucket.members], self.render_config)
                                for arr in self._engine.arrays]
         lanes = "; each bucket's physics on its own Warp lane between two jitted halves (backend.streams)"
-        log.info("mjx backend: engine built (%.1f s)%s; first tick (compiles on a cold cache)",
-                 time.perf_counter() - start, lanes if self.streams else "")
+        groups = (f"; its {len(self._buckets)} buckets in {len(self._engine.engines)} programs (backend."
+                  f"program_buckets)" if isinstance(self._engine, EngineGroups) else "")
+        log.info("mjx backend: engine built (%.1f s)%s%s; first tick (compiles on a cold cache)",
+                 time.perf_counter() - start, groups, lanes if self.streams else "")
         start = time.perf_counter()
         self.reset()
         log.info("mjx backend: first tick done (%.1f s)", time.perf_counter() - start)

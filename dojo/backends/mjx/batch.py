@@ -5,8 +5,10 @@ the bucket member (plan) it simulates. The member table (varying model fields an
 plan) lives on the device; each tick gathers the rows of the current members and vmaps `mjx.step` over the data
 *and* those fields (`in_axes` 0 for the varying fields, None for the shared model). A tick applies resets, writes
 the controls, runs the plan's physics sub-steps (`n_substeps` per 25 Hz control step; under Warp as one call, see
-`substeps`), and recomputes kinematics so that positions match the new state. All buckets of a tick are traced
-into one program, so the device runs different tasks' batches concurrently instead of one after another.
+`substeps`), and recomputes kinematics so that positions match the new state. The buckets of a tick are traced
+into one program, so the device runs different tasks' batches concurrently instead of one after another; up to
+`PROGRAM_BUCKETS` of them, since one program over a whole suite's buckets compiles for too long and in too much
+memory (`make_engine`, `EngineGroups`).
 
 Continuous batching. Refilling an environment is "set its member index and its reset flag", both ordinary
 inputs of fixed shape, so the program compiled for the first tick serves the whole run.
@@ -59,6 +61,19 @@ report convergence, not lost physics. Warp ORs these bits into `Data.overflow` p
 
 class CapacityOverflow(RuntimeError):
     """A Warp buffer was too small: contacts or constraint rows were dropped, so the physics is not the plan's."""
+
+
+def raise_overflow(found: dict[str, dict[str, int]], arrays: Sequence[BucketArrays]) -> None:
+    """Raise `CapacityOverflow` naming each bucket of `found` ({bucket key: {what: worlds}}), its buffers and world
+    counts, and what it had allocated; nothing when `found` is empty."""
+    if found:
+        capacity = {a.bucket.key: contact_capacity(a.bucket) for a in arrays if a.bucket.key in found}
+        lines = [f"{key}: {', '.join(f'{what} in {n} world(s)' for what, n in flags.items())} (allocated "
+                 f"{capacity[key][0]} contacts and {capacity[key][1]} constraint rows per world)"
+                 for key, flags in found.items()]
+        raise CapacityOverflow("MuJoCo Warp dropped contacts or constraints, so these results are not the "
+                               "plans' physics: " + "; ".join(lines) + ". Raise REST_MARGIN in "
+                               "dojo/backends/mjx/batch.py or report the scene.")
 
 
 def contact_capacity(bucket: Bucket) -> tuple[int, int]:
@@ -589,15 +604,7 @@ class Engine:
 
     def check_overflow(self) -> None:
         """Raise `CapacityOverflow` naming each bucket, buffer and world count if any Warp buffer overflowed."""
-        found = self.overflows()
-        if found:
-            capacity = {a.bucket.key: contact_capacity(a.bucket) for a in self.arrays if a.bucket.key in found}
-            lines = [f"{key}: {', '.join(f'{what} in {n} world(s)' for what, n in flags.items())} (allocated "
-                     f"{capacity[key][0]} contacts and {capacity[key][1]} constraint rows per world)"
-                     for key, flags in found.items()]
-            raise CapacityOverflow("MuJoCo Warp dropped contacts or constraints, so these results are not the "
-                                   "plans' physics: " + "; ".join(lines) + ". Raise REST_MARGIN in "
-                                   "dojo/backends/mjx/batch.py or report the scene.")
+        raise_overflow(self.overflows(), self.arrays)
 
     def compilations(self) -> int:
         """How many programs the tick has compiled (1 in a healthy run, whatever the refills; with `streams`, the
@@ -605,3 +612,70 @@ class Engine:
         if self._physics is not None:
             return max(self._before._cache_size(), self._after._cache_size())
         return self._tick._cache_size()
+
+
+PROGRAM_BUCKETS = 16
+"""At most this many buckets share one jitted program (`make_engine`). XLA's compile of one program over every
+bucket grows faster than the buckets do. Measured on the CI machine (2026-12-02, `dojo run backend=mjx
+backend.impl=warp policy=zero suite=robodojo_sim seeds=[0]` with `JAX_LOG_COMPILES=1`, so the physics is Warp's and
+the program is the tick's resets, actions, predicates and observations): 7 tasks' 28 plans in 13 buckets traced in
+3.7 s and compiled in 13.3 s; the suite's 850 plans that the mjx backend runs, 141 buckets, traced in 56 s and then
+ran the 23 GB machine out of memory (24 GB resident) before their one program had compiled."""
+
+
+class EngineGroups:
+    """`Engine`'s interface over buckets in groups of at most `per_program`, one `Engine` (one jitted tick, or two
+    halves with `streams`) each, ticked one after another: each group compiles on its own, so the compile grows
+    with the groups rather than with the whole program, and a group that recurs (the same buckets at the same
+    sizes) is found in JAX's compilation cache.
+
+    What it costs: a tick launches each group's program in turn (without `streams` nothing waits, so the device
+    queues them as it queued the buckets of one program; with `streams` each group's tick waits for its lanes, so
+    only the lanes of one group overlap)."""
+
+    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
+                 example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
+                 graph_mode: object | None = None, streams: bool = False, per_program: int = PROGRAM_BUCKETS):
+        self.hooks = hooks or Hooks()
+        self._cuts = [(k, min(k + per_program, len(buckets))) for k in range(0, len(buckets), per_program)]
+        self.engines = [Engine(buckets[a:b], sizes[a:b], impl, self.hooks,
+                               None if example_inputs is None else example_inputs[a:b], placement, graph_mode,
+                               streams) for a, b in self._cuts]
+        self.arrays = [arr for engine in self.engines for arr in engine.arrays]
+
+    @property
+    def data(self) -> tuple[Tree, ...]:
+        """Every bucket's data, in the buckets' order."""
+        return tuple(d for engine in self.engines for d in engine.data)
+
+    def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
+             steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
+        """`Engine.tick` of each group on its buckets' share of the arguments; the outputs in the buckets' order."""
+        out: list[Tree] = []
+        for engine, (a, b) in zip(self.engines, self._cuts):
+            out += engine.tick(members[a:b], resets[a:b], stepping[a:b], inputs[a:b],
+                               None if steps is None else steps[a:b])
+        return tuple(out)
+
+    def overflows(self) -> dict[str, dict[str, int]]:
+        return {key: flags for engine in self.engines for key, flags in engine.overflows().items()}
+
+    def check_overflow(self) -> None:
+        raise_overflow(self.overflows(), self.arrays)
+
+    def compilations(self) -> int:
+        """The most programs any group has compiled (1 in a healthy run)."""
+        return max(engine.compilations() for engine in self.engines)
+
+
+def make_engine(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
+                example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
+                graph_mode: object | None = None, streams: bool = False,
+                per_program: int | None = None) -> Engine | EngineGroups:
+    """One `Engine` for up to `per_program` buckets (`PROGRAM_BUCKETS` when None), else `EngineGroups`."""
+    limit = PROGRAM_BUCKETS if per_program is None else int(per_program)
+    if limit < 1:
+        raise ValueError(f"backend.program_buckets must be at least 1, got {limit}")
+    if len(buckets) <= limit:
+        return Engine(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams)
+    return EngineGroups(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams, limit)
