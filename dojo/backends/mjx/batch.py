@@ -537,42 +537,52 @@ class Engine:
                 for row in (members, resets, stepping, steps)]
         return jax.device_put(np.stack(rows), self.placement.replicated)
 
-    def _split_tick(self, call: Callable[..., Any], extra: list, flags: jax.Array, inputs: tuple) -> tuple:
-        """`tick` with the physics on streams: the first jitted half, the lanes, the second half, each waited for
-        (the halves through `call`, as `tick` calls the one jitted tick); returns (extra leaves, per bucket
-        outputs) and keeps the lanes' words as the data."""
-        times = [time.perf_counter()]
-        extra, before = wait_for(call(self._before, self._table_leaves, self._words, extra, flags, inputs))
-        times.append(time.perf_counter())
-        outboxes = self._physics.step([b[1] for b in before])
-        times.append(time.perf_counter())
-        extra, out, self._words = wait_for(call(self._after, self._table_leaves, outboxes, extra, flags,
-                                                tuple(b[0] for b in before)))
-        times.append(time.perf_counter())
-        if self.split_ms is not None:
-            for kept, start, end in zip(self.split_ms.values(), times, times[1:]):
-                kept.append(1e3 * (end - start))
-        return extra, out
-
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
         """Advance every bucket by one control step. Without `streams` nothing waits for the device (the outputs
         are computed asynchronously); with `streams` the tick returns when they are."""
+        return self.start_tick(members, resets, stepping, inputs, steps)()
+
+    def start_tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any],
+                   inputs: Sequence[Tree], steps: Sequence[Any] | None = None) -> Callable[[], tuple[Tree, ...]]:
+        """`tick` in two parts, so that the lanes of several engines run at once (`EngineGroups`): this starts the
+        tick and returns the call that ends it and gives its outputs. Without `streams` it starts the whole tick;
+        with `streams` it runs the first jitted half and launches the lanes, and the call waits for the lanes and
+        runs the second half, each half waited for (with `split_ms`, the three parts' milliseconds are kept)."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
         inputs = tuple(jax.tree.map(jnp.asarray, i) for i in inputs)
         call = run_settled if may_capture(self.impl, self._graphs, self._ticks) else _call
-        if self._physics is not None:
-            flags = self._packed_flags(members, resets, stepping, steps)
-            self._extra_leaves, rest = self._split_tick(call, self._extra_leaves, flags, inputs)
-            self._data_leaves = None  # unpacked from the lanes' words when `data` is read
-        else:
+        if self._physics is None:
             self._data_leaves, self._extra_leaves, rest = call(
                 self._tick, self._model_leaves, self._table_leaves, self._data_leaves, self._extra_leaves,
                 tuple(jnp.asarray(m, jnp.int32) for m in members), tuple(jnp.asarray(r, bool) for r in resets),
                 tuple(jnp.asarray(s, bool) for s in stepping), inputs, tuple(jnp.asarray(s, jnp.int32) for s in steps))
-        self._ticks += 1
-        self._data = None
-        return tuple(r[0] for r in rest)
+            self._ticks += 1
+            self._data = None
+            out = tuple(r[0] for r in rest)
+            return lambda: out
+        flags = self._packed_flags(members, resets, stepping, steps)
+        times = [time.perf_counter()]
+        extra, before = wait_for(call(self._before, self._table_leaves, self._words, self._extra_leaves, flags,
+                                      inputs))
+        times.append(time.perf_counter())
+        self._physics.launch([b[1] for b in before])
+
+        def finish() -> tuple[Tree, ...]:
+            outboxes = self._physics.finish()
+            times.append(time.perf_counter())
+            self._extra_leaves, out, self._words = wait_for(call(self._after, self._table_leaves, outboxes, extra,
+                                                                 flags, tuple(b[0] for b in before)))
+            times.append(time.perf_counter())
+            if self.split_ms is not None:
+                for kept, start, end in zip(self.split_ms.values(), times, times[1:]):
+                    kept.append(1e3 * (end - start))
+            self._data_leaves = None  # unpacked from the lanes' words when `data` is read
+            self._ticks += 1
+            self._data = None
+            return tuple(r[0] for r in out)
+
+        return finish
 
     def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
         """With `streams`, each lane's tick on its own (`StreamEngine.lane_ms`: tasks, environments, median ms of
@@ -625,13 +635,14 @@ ran the 23 GB machine out of memory (24 GB resident) before their one program ha
 
 class EngineGroups:
     """`Engine`'s interface over buckets in groups of at most `per_program`, one `Engine` (one jitted tick, or two
-    halves with `streams`) each, ticked one after another: each group compiles on its own, so the compile grows
-    with the groups rather than with the whole program, and a group that recurs (the same buckets at the same
-    sizes) is found in JAX's compilation cache.
+    halves with `streams`) each: each group compiles on its own, so the compile grows with the groups rather than
+    with the whole program, and a group that recurs (the same buckets at the same sizes) is found in JAX's
+    compilation cache.
 
-    What it costs: a tick launches each group's program in turn (without `streams` nothing waits, so the device
-    queues them as it queued the buckets of one program; with `streams` each group's tick waits for its lanes, so
-    only the lanes of one group overlap)."""
+    What it costs: a tick launches one program a group instead of one. Without `streams` nothing waits, so the
+    device queues them as it queued the buckets of one program. With `streams` each group's first half runs and
+    launches its lanes while the next group's first half runs, and the second halves run once every lane has
+    finished, so the lanes of every group overlap as they do in one engine."""
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hooks: Hooks | None = None,
                  example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
@@ -650,17 +661,20 @@ class EngineGroups:
 
     def tick(self, members: Sequence[Any], resets: Sequence[Any], stepping: Sequence[Any], inputs: Sequence[Tree],
              steps: Sequence[Any] | None = None) -> tuple[Tree, ...]:
-        """`Engine.tick` of each group on its buckets' share of the arguments; the outputs in the buckets' order."""
-        out: list[Tree] = []
-        for engine, (a, b) in zip(self.engines, self._cuts):
-            out += engine.tick(members[a:b], resets[a:b], stepping[a:b], inputs[a:b],
-                               None if steps is None else steps[a:b])
-        return tuple(out)
+        """`Engine.tick` of every group on its buckets' share of the arguments, every group started before any is
+        ended (`Engine.start_tick`), so that with `streams` every group's lanes run at once; the outputs in the
+        buckets' order."""
+        ends = [engine.start_tick(members[a:b], resets[a:b], stepping[a:b], inputs[a:b],
+                                  None if steps is None else steps[a:b])
+                for engine, (a, b) in zip(self.engines, self._cuts)]
+        return tuple(out for end in ends for out in end())
 
     def overflows(self) -> dict[str, dict[str, int]]:
+        """Every group's `Engine.overflows`, in one map (bucket keys are unique across groups)."""
         return {key: flags for engine in self.engines for key, flags in engine.overflows().items()}
 
     def check_overflow(self) -> None:
+        """`Engine.check_overflow` over every group at once, so that the error names every bucket that overflowed."""
         raise_overflow(self.overflows(), self.arrays)
 
     def compilations(self) -> int:

@@ -149,7 +149,7 @@ class Union:
         return _plus(self.frame, self.slotted)
 
     def fits(self, unit: Unit, growth: float) -> bool:
-        """Whether the union with `unit` added stays within `1 + growth` of its largest unit (`within`)."""
+        """Whether the union with `unit` added stays within `1 + growth` of its largest unit (`_bounded`)."""
         frame, slotted, ref = self._with(unit)
         return _bounded(_plus(frame, slotted), ref, growth)
 

@@ -556,11 +556,13 @@ class StreamPhysics:
         """Per bucket, the varying model fields its lane loads each tick (`exchange_fields`)."""
         self.returned = [lane.returned for lane in self.engine.lanes]
         """Per bucket, the data leaves its outbox holds, in order."""
+        self._views: list[Any] = []
+        """The JAX inboxes the lanes copy from, as Warp arrays, kept alive from `launch` until `finish`."""
 
-    def step(self, inboxes: Sequence[Any]) -> list[Any]:
-        """One control step of every bucket from `inboxes[k]`, the flat words of its `exchange_fields`
-        (`pack_words`, a JAX array); returns each bucket's `returned` leaves after the step and a refresh as flat
-        words (`unpack_words`), JAX arrays that view the lanes' outboxes (valid until the next step).
+    def launch(self, inboxes: Sequence[Any]) -> None:
+        """Start one control step of every bucket from `inboxes[k]`, the flat words of its `exchange_fields`
+        (`pack_words`, a JAX array): the lanes run on their streams until `finish`, so that the lanes of several
+        engines (`batch.EngineGroups`) run at once.
 
         Why one buffer each way: loading a dozen fields per bucket through their own DLPack views cost about
         16 ms a tick at six buckets on an H200 host (2026-12-02, a `jax.profiler` trace); the fields now move
@@ -568,14 +570,20 @@ class StreamPhysics:
         from contextlib import nullcontext
 
         wp = self.engine.wp
-        views: list[Any] = []  # what the copies read, alive until the lanes are done with them
+        self._views = []  # what the copies read, alive until the lanes are done with them
         for lane, words in zip(self.engine.lanes, inboxes):
             if words.shape != (lane.inbox.size,):
                 raise ValueError(f"bucket {lane.bucket.key}: {words.shape[0]} words given for an inbox of "
                                  f"{lane.inbox.size}")
             with wp.ScopedStream(lane.stream) if lane.stream is not None else nullcontext():
-                views.append(wp.from_jax(words))
-                wp.copy(lane.inbox, views[-1])
+                self._views.append(wp.from_jax(words))
+                wp.copy(lane.inbox, self._views[-1])
         self.engine.tick(0)
+
+    def finish(self) -> list[Any]:
+        """Wait for the lanes `launch` started and return each bucket's `returned` leaves after the step and a
+        refresh as flat words (`unpack_words`), JAX arrays that view the lanes' outboxes (valid until the next
+        launch)."""
         self.engine.synchronize()
-        return [wp.to_jax(lane.outbox) for lane in self.engine.lanes]
+        self._views = []
+        return [self.engine.wp.to_jax(lane.outbox) for lane in self.engine.lanes]
