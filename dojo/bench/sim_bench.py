@@ -347,14 +347,15 @@ def gpu_settings(modes: Sequence[str], engine_streams: bool = False) -> dict[str
     control arrays and reserves nothing up front (the 24-task mix merged into 13 buckets at 16,384 environments ran
     out of memory in its second engine on an H100 while JAX held half, 2026-11-28); beside a JAX engine it gets
     half, as it does when the JAX engine's own physics runs on streams (`engine_streams`). Wherever streams run,
-    the CUDA driver's hardware queues too (`STREAMS_ENVIRONMENT`)."""
-    from dojo.backends.mjx import STREAMS_ENVIRONMENT, STREAMS_JAX_MEMORY
+    the CUDA driver's hardware queues too (`STREAMS_ENVIRONMENT`); beside a JAX engine, what `backend.streams`
+    sets (`ENGINE_STREAMS_ENVIRONMENT`)."""
+    from dojo.backends.mjx import ENGINE_STREAMS_ENVIRONMENT, STREAMS_ENVIRONMENT
 
     if not STREAM_MODES & set(modes):
-        return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT} if engine_streams else {}
+        return dict(ENGINE_STREAMS_ENVIRONMENT) if engine_streams else {}
     if set(modes) <= STREAM_MODES:
         return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **STREAMS_ENVIRONMENT}
-    return {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT}
+    return dict(ENGINE_STREAMS_ENVIRONMENT)
 
 
 def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, ...]) -> dict[str, Any]:

@@ -49,6 +49,10 @@ plans=DIR episodes=null modes=[streams] steps=10 warmup=2` on `dojo compile suit
 plans): 31.1k physics steps/s with 8 queues, 76.5k with 32 (2.46x). The mix of 29 buckets at 16,384 environments
 ran the same either way (1.49M, 2026-11-28): there the kernels, not the queues, fill the GPU."""
 
+ENGINE_STREAMS_ENVIRONMENT = {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT}
+"""What a process whose jitted engine runs its physics on streams (`backend.streams`) starts with, unless set:
+JAX half the GPU beside the lanes, and every hardware queue."""
+
 RUNS_POLICY_RULES = True
 """`MjxBackend.attach_rule`: a policy's joint-mode rule runs inside the tick (`dojo.backends.registry`)."""
 
@@ -65,7 +69,7 @@ def make(options: BackendOptions) -> MjxBackend:
     from pathlib import Path
 
     if options.settings.get("streams"):  # the lanes allocate through Warp: JAX takes half the GPU, not 3/4
-        for name, value in {"XLA_PYTHON_CLIENT_MEM_FRACTION": STREAMS_JAX_MEMORY, **STREAMS_ENVIRONMENT}.items():
+        for name, value in ENGINE_STREAMS_ENVIRONMENT.items():
             os.environ.setdefault(name, value)
     import jax
 
