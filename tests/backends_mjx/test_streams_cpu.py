@@ -208,7 +208,8 @@ def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -
 def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) -> None:
     """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, a field of
     another width is refused by name rather than copied short, and so is a data leaf whose layout in MJX differs
-    from MuJoCo Warp's (the engine would keep it at its first value)."""
+    from MuJoCo Warp's (the engine would keep it at its first value). Flags of one byte (`light_active`) travel
+    four to a word: the test after this one."""
     import jax.numpy as jnp
     import warp as wp
 
@@ -233,6 +234,69 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) ->
 
     with pytest.raises(ValueError, match=r"differ in layout for \['qpos'\]"):
         StreamEngine(buckets[:1], [B], [[]], device="cpu", exchange=[{"qpos": 1, "qvel": B * buckets[0].model.nv}])
+
+
+def test_flags_of_one_byte_travel_four_to_a_word_into_exactly_their_bytes() -> None:
+    """The random setting varies lights per plan, and MuJoCo Warp keeps `light_active` as bool per world: a lane's
+    inbox carries it as bytes, four to a word (the last word's spare bytes zero), packed by JAX and copied by Warp
+    into exactly the field's bytes, its neighbours untouched; int8 keeps its sign."""
+    import jax.numpy as jnp
+    import warp as wp
+
+    from dojo.backends.mjx.streams import _inbox, pack_words, unpack_words
+
+    wp.init()
+    flags = np.array([[True, False, True], [False, False, True], [True, True, False]])
+    ints, small = np.arange(-4, 2, dtype=np.int32).reshape(2, 3), np.array([-128, -1, 7], np.int8)
+    values = [ints, flags, small, np.full((2, 2), np.pi, np.float32)]
+    words = pack_words([jnp.asarray(v) for v in values])
+    assert words.shape == (6 + 3 + 1 + 4,)
+    assert np.asarray(words[6:9]).view(np.uint8).tolist() == [1, 0, 1, 0, 0, 1, 1, 1, 0, 0, 0, 0]
+    for back, value in zip(unpack_words(words, [jnp.asarray(v) for v in values]), values):
+        assert back.dtype == value.dtype
+        np.testing.assert_array_equal(np.asarray(back), value)
+    arrays = [wp.zeros((2, 3), dtype=wp.int32, device="cpu"), wp.zeros((3, 3), dtype=wp.bool, device="cpu"),
+              wp.zeros(3, dtype=wp.int8, device="cpu"), wp.zeros((2, 2), dtype=wp.float32, device="cpu")]
+    guard = wp.array(np.full(16, 0xAB, np.uint8), dtype=wp.uint8, device="cpu")  # bytes around a flag field
+    flags_in_guard = wp.array(ptr=guard.ptr + 4, dtype=wp.bool, shape=(9,), device="cpu", copy=False)
+    buffer, copies = _inbox(wp, [*arrays, flags_in_guard])
+    assert buffer.size == 14 + 3
+    buffer.assign(np.concatenate([np.asarray(words), np.asarray(pack_words([jnp.asarray(flags.reshape(-1))]))]))
+    for copy in copies:
+        wp.copy(*copy)
+    for array, value in zip(arrays, values):
+        np.testing.assert_array_equal(array.numpy(), value)
+    assert guard.numpy()[4:13].tolist() == flags.reshape(-1).astype(np.uint8).tolist()
+    assert guard.numpy()[:4].tolist() == [0xAB] * 4 and guard.numpy()[13:].tolist() == [0xAB] * 3
+    with pytest.raises(ValueError, match="32-bit or 1-byte scalars, not .*float64"):
+        _inbox(wp, [wp.zeros(4, dtype=wp.float64, device="cpu")])
+
+
+def test_a_bucket_whose_plans_light_the_scene_differently_ticks_on_streams_as_the_jitted_tick() -> None:
+    """Random-setting plans whose lights differ (`light_active`, bool per world in MuJoCo Warp) share a bucket:
+    on streams the tick runs (it used to refuse the flags' width), reaches the jitted tick's state with a refill,
+    and each world's lights are its member's. Not bit for bit here: the block's free-joint quaternion has a
+    component of 2e-17 that ends 1e-22 apart in member 1's worlds (each plan alone, and the standard setting,
+    are bit for bit; the cause is not found yet), so the state is compared to float32's rounding."""
+    from pathlib import Path
+
+    from dojo.compiler.plan import compile_plan
+    from dojo.compiler.spec_library import SpecLibrary
+
+    if not warp_installed():
+        pytest.skip("needs warp-lang (pip install 'robodojo[warp]')")
+    library = SpecLibrary.load([Path(__file__).resolve().parents[1] / "specs" / "pack"])
+    plans = [compile_plan(library, library.get("task", "stack_test"), "random", seed) for seed in (1, 2)]
+    [bucket] = make_buckets(plans)
+    rows = bucket.table()["light_active"]
+    assert "light_active" in bucket.varying and rows[0].tolist() != rows[1].tolist()
+    plain, split = _run_engine([bucket], refill=True), _run_engine([bucket], streams=True, refill=True)
+    for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "geom_xpos"):
+        np.testing.assert_allclose(np.asarray(getattr(split.data[0], name)), np.asarray(getattr(plain.data[0], name)),
+                                   rtol=1e-6, atol=1e-12, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(split.data[0].qvel), np.asarray(plain.data[0].qvel))
+    [lane] = split._physics.engine.lanes
+    np.testing.assert_array_equal(lane.model.light_active.numpy(), rows[[0, 0, 0, 1]])  # after the refill
 
 
 def test_the_bench_says_where_a_split_ticks_time_goes(buckets) -> None:

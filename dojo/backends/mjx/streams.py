@@ -91,13 +91,42 @@ def _words(wp: Any, array: Any) -> Any:
     return _view(wp, array, 0, wp.float32, (count,))
 
 
+def inbox_words(size: int, itemsize: int) -> int | None:
+    """How many words an array of `size` scalars of `itemsize` bytes takes in a lane's inbox: one a scalar of 32
+    bits, four bytes to a word for 1-byte scalars (flags such as `light_active`, which the random setting's lights
+    vary per plan), None for other widths."""
+    return size if itemsize == 4 else -(-size // 4) if itemsize == 1 else None
+
+
+def _byte_view(wp: Any, base: Any, at: int, count: int) -> Any:
+    """`count` bytes of `base`'s memory from its byte `at` on, as uint8, owning nothing."""
+    return wp.array(ptr=base.ptr + at, dtype=wp.uint8, shape=(count,), device=base.device, copy=False)
+
+
 def _inbox(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
     """A flat buffer of words holding `arrays` end to end in order, and the copies from it into them (a lane's
-    inbox). Empty arrays take no room."""
-    views = [_words(wp, array) for array in arrays if array.size]
-    offsets, total = word_offsets([view.size for view in views])
+    inbox): arrays of 32-bit scalars as words, of 1-byte scalars as bytes (`inbox_words`; `pack_words` lays them
+    out alike). Empty arrays take no room; other widths are refused by dtype."""
+    arrays = [array for array in arrays if array.size]
+    counts = []
+    for array in arrays:
+        count = _word_count(wp, array)
+        if count is None and array.is_contiguous and wp.types.type_size_in_bytes(array.dtype) == 1:
+            count = inbox_words(array.size, 1)
+        if count is None:
+            raise ValueError(f"a lane exchanges contiguous arrays of 32-bit or 1-byte scalars, not {array.dtype} "
+                             f"{array.shape}")
+        counts.append(count)
+    offsets, total = word_offsets(counts)
     buffer = wp.zeros(total, dtype=wp.float32)
-    return buffer, [(view, buffer, 0, at, view.size) for view, at in zip(views, offsets)]
+    copies: list[Copy] = []
+    for array, at, count in zip(arrays, offsets, counts):
+        if _word_count(wp, array) is None:  # 1-byte scalars: exactly their bytes, not the word's padding
+            copies.append((_byte_view(wp, array, 0, array.size), _byte_view(wp, buffer, 4 * at, array.size),
+                           0, 0, array.size))
+        else:
+            copies.append((_words(wp, array), buffer, 0, at, count))
+    return buffer, copies
 
 
 OUTBOX_ALIGN = 64
@@ -277,31 +306,59 @@ def exchange_fields(batched: Sequence[str]) -> tuple[tuple[str, str], ...]:
 
 
 def pack_words(arrays: Sequence[Any], align: int = 1) -> Any:
-    """JAX arrays of 32-bit elements as one flat float32 array, in order with their bits kept, each starting at a
-    multiple of `align` words (`word_offsets`; zeros between): what a lane's inbox takes in one copy (`align` 1),
-    or its outbox holds (`OUTBOX_ALIGN`)."""
-    import jax
+    """JAX arrays of 32-bit or 1-byte elements as one flat float32 array, in order with their bits kept, each
+    starting at a multiple of `align` words (`word_offsets`; zeros between), 1-byte elements four to a word
+    (`inbox_words`): what a lane's inbox takes in one copy (`align` 1), or its outbox holds (`OUTBOX_ALIGN`)."""
     import jax.numpy as jnp
 
-    offsets, _ = word_offsets([a.size for a in arrays], align)
+    offsets, _ = word_offsets([_jax_words(a) for a in arrays], align)
     parts, at = [], 0
     for a, start in zip(arrays, offsets):
         if a.size:
             if start > at:
                 parts.append(jnp.zeros(start - at, jnp.float32))
-            parts.append(jax.lax.bitcast_convert_type(a, jnp.float32).reshape(-1))
-            at = start + a.size
+            parts.append(_as_words(a))
+            at = start + _jax_words(a)
     return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.float32)
 
 
 def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
     """Flat float32 words laid out as `pack_words(..., align)` lays out arrays shaped like `like`, as those arrays
-    of their 32-bit dtypes with their bits kept."""
+    of their dtypes with their bits kept."""
     import jax
+    import jax.numpy as jnp
 
-    offsets, _ = word_offsets([a.size for a in like], align)
-    return [jax.lax.bitcast_convert_type(words[at:at + a.size], a.dtype).reshape(a.shape)
-            for a, at in zip(like, offsets)]
+    offsets, _ = word_offsets([_jax_words(a) for a in like], align)
+    out = []
+    for a, at in zip(like, offsets):
+        part = words[at:at + _jax_words(a)]
+        if a.dtype.itemsize == 1:
+            part = jax.lax.bitcast_convert_type(part, jnp.uint8).reshape(-1)[:a.size].astype(a.dtype)
+        else:
+            part = jax.lax.bitcast_convert_type(part, a.dtype)
+        out.append(part.reshape(a.shape))
+    return out
+
+
+def _jax_words(a: Any) -> int:
+    """The words JAX array `a` takes in a flat array of words (`inbox_words`); other widths are refused by dtype."""
+    count = inbox_words(a.size, a.dtype.itemsize)
+    if count is None:
+        raise ValueError(f"a lane exchanges arrays of 32-bit or 1-byte scalars, not {a.dtype} {a.shape}")
+    return count
+
+
+def _as_words(a: Any) -> Any:
+    """JAX array `a` (32-bit or 1-byte elements) as flat float32 words with its bits kept, 1-byte elements four to
+    a word in memory order, the last word's spare bytes zero."""
+    import jax
+    import jax.numpy as jnp
+
+    if a.dtype.itemsize == 4:
+        return jax.lax.bitcast_convert_type(a, jnp.float32).reshape(-1)
+    flat = a.reshape(-1).astype(jnp.uint8)  # bool as 0/1, int8 as its two's-complement byte
+    flat = jnp.pad(flat, (0, -flat.size % 4))
+    return jax.lax.bitcast_convert_type(flat.reshape(-1, 4), jnp.float32)
 
 
 class StreamEngine:
