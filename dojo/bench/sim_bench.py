@@ -369,7 +369,7 @@ def _bench_mjx(cfg: dict[str, Any], backend: dict[str, Any], modes: tuple[str, .
     from dojo.backends.mjx.sharding import Placement, local_devices
 
     on_streams = bool(STREAM_MODES & set(modes))
-    engine_streams = bool(backend.get("streams", False))
+    engine_streams = backend.get("streams") is True  # auto: the bench's modes say where the physics runs
     for name, value in gpu_settings(modes, engine_streams).items():  # before JAX or Warp starts on the GPU
         os.environ.setdefault(name, value)
     enable_compilation_cache(cfg.get("cache_dir"))

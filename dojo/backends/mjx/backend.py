@@ -59,8 +59,8 @@ from dojo.backends.program_types import ProgramLayout
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, EngineGroups, Hooks, Tree, make_engine
 from dojo.backends.mjx.bucket import Bucket, make_buckets
-from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, describe_impl, enable_compilation_cache,
-                                     graph_mode_name, warp_installed)
+from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, choose_streams, describe_impl,
+                                     enable_compilation_cache, graph_mode_name, warp_installed)
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
@@ -298,7 +298,7 @@ class MjxBackend(Backend):
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
                  merge: bool = False, merge_growth: float = GROWTH,
                  graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None,
-                 streams: bool = False, program_buckets: int | None = None) -> None:
+                 streams: bool | str = False, program_buckets: int | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
         layout, as the mujoco backend gives them, for privileged reference policies only (the `oracle`).
         `cameras`: the images observations carry (DESIGN section 4), only for observed slots: under `warp` by
@@ -313,7 +313,8 @@ class MjxBackend(Backend):
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
         None: MJX's own default).
         `streams`: under `warp` on one GPU, every bucket's physics on its own CUDA stream between two jitted halves
-        of the tick (`streams.StreamPhysics`) instead of one after another inside it.
+        of the tick (`streams.StreamPhysics`) instead of one after another inside it; `auto`: where
+        `cache.choose_streams` says.
         `program_buckets`: at most this many buckets share one jitted program (`batch.make_engine`; None:
         `batch.PROGRAM_BUCKETS`), so that a suite of many buckets compiles group by group.
         `action_modes`: the modes `step` will be given (None: all of `MODES`); the ee modes' IK is compiled only
@@ -329,7 +330,6 @@ class MjxBackend(Backend):
         self.impl = choose_impl(impl)
         self.merge, self.merge_growth = bool(merge), float(merge_growth)
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
-        self.streams = bool(streams)
         self.program_buckets = program_buckets
         log.info("mjx backend: %s%s", describe_impl(self.impl),
                  f", CUDA graphs: {graph_mode_name(self.graph_mode)}" if self.graph_mode is not None else "")
@@ -350,6 +350,10 @@ class MjxBackend(Backend):
         self._image_buffers: HostBuffers | None = None
         self.placement = Placement.over(local_devices(devices), self.impl)
         log.info("mjx backend: environments split over %s", self.placement.describe())
+        self.streams, why = choose_streams(streams, self.impl, self.placement.on_gpu, self.render_config is not None)
+        if streams == "auto":
+            log.info("mjx backend: physics %s (backend.streams=%s)",
+                     "on streams, each bucket on its own" if self.streams else "in the jitted tick", why)
 
     @property
     def num_envs(self) -> int:

@@ -78,6 +78,20 @@ def choose_impl(requested: str | None = None) -> str:
     return chosen
 
 
+def choose_streams(requested: bool | str, impl: str, on_gpu: bool, cameras: bool) -> tuple[bool, str]:
+    """Whether the tick's physics runs on streams (`backend.streams`), and why, for the log: as asked when true or
+    false; `auto` turns them on for MuJoCo Warp on a GPU without cameras (cameras on streams are checked bit for
+    bit on Warp's CPU device only), where they were measured faster (`dojo.backends.mjx.streams_may_run`). On
+    Warp's CPU device there is nothing to overlap, so auto leaves them off there."""
+    if requested != "auto":
+        return bool(requested), "as set"
+    if impl != "warp" or not on_gpu:
+        return False, "auto: MuJoCo Warp is not on a GPU here"
+    if cameras:
+        return False, "auto: cameras on streams are not yet checked on a GPU"
+    return True, "auto: MuJoCo Warp on a GPU, no cameras"
+
+
 def graph_mode(name: str | None, impl: str) -> object | None:
     """`backend.graph_mode` as the `GraphMode` MJX's `put_model` takes: None for MJX's default, and under `impl`
     `jax` (no Warp calls to capture); `none` on Warp's CPU device, whatever was asked (no CUDA there). The name is

@@ -110,6 +110,11 @@ class Placement:
     def put_replicated(self, tree: Any) -> Any:
         return jax.device_put(tree, self.replicated)
 
+    @property
+    def on_gpu(self) -> bool:
+        """Whether the batches live on GPUs (`backend.streams=auto` runs streams only there)."""
+        return self.mesh.devices.reshape(-1)[0].platform == "gpu"
+
     def describe(self) -> str:
         devices = self.mesh.devices.reshape(-1)
         return f"{self.count} {devices[0].platform} device(s): {', '.join(str(d) for d in devices)}"
