@@ -276,8 +276,9 @@ def test_a_bucket_whose_plans_light_the_scene_differently_ticks_on_streams_as_th
     """Random-setting plans whose lights differ (`light_active`, bool per world in MuJoCo Warp) share a bucket:
     on streams the tick runs (it used to refuse the flags' width), reaches the jitted tick's state with a refill,
     and each world's lights are its member's. Not bit for bit here: the block's free-joint quaternion has a
-    component of 2e-17 that ends 1e-22 apart in member 1's worlds (each plan alone, and the standard setting,
-    are bit for bit; the cause is not found yet), so the state is compared to float32's rounding."""
+    component of 2e-17 that ends 1e-22 apart in member 1's worlds. Member 1's plan alone does the same, with no
+    field varying, so it is the lanes' physics on that scene, not the flags (seed 1 alone and the standard
+    setting are bit for bit; the cause is not found yet): the state is compared to float32's rounding."""
     from pathlib import Path
 
     from dojo.compiler.plan import compile_plan
