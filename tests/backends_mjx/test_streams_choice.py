@@ -58,3 +58,11 @@ def test_a_default_mjx_backend_on_a_cpu_keeps_the_jitted_tick_and_the_environmen
         with caplog.at_level(logging.INFO, logger="dojo.backends.mjx.backend"):
             assert MjxBackend(impl="warp", streams="auto").streams is False
         assert "physics in the jitted tick (backend.streams=auto: MuJoCo Warp is not on a GPU here)" in caplog.text
+
+
+def test_a_streams_setting_other_than_true_false_or_auto_is_refused_by_name() -> None:
+    from dojo.backends.mjx import make
+    from dojo.backends.registry import BackendOptions
+
+    with pytest.raises(ValueError, match="backend.streams takes true, false or auto, not 'maybe'"):
+        make(BackendOptions(settings={"streams": "maybe"}))

@@ -63,12 +63,15 @@ def make(options: BackendOptions) -> MjxBackend:
     (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
     `merge_growth` (how much larger than its largest plan a padded or merged model may be; null:
     `merge_groups.GROWTH`), `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
-    MJX's own default), `streams` (true, false or auto: each bucket's physics on its own CUDA stream; auto where
-    `streams_may_run` and then `cache.choose_streams` allow) and
+    MJX's own default), `streams` (true, false or auto, null: auto; each bucket's physics on its own CUDA stream,
+    under auto where `streams_may_run` and then `cache.choose_streams` allow) and
     `program_buckets` (at most this many buckets in one jitted program; null: `batch.PROGRAM_BUCKETS`).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
     streams = options.settings.get("streams", "auto")
+    streams = "auto" if streams is None else streams
+    if streams not in (True, False, "auto"):
+        raise ValueError(f"backend.streams takes true, false or auto, not {streams!r}")
     if streams == "auto" and not streams_may_run(options.settings.get("impl"), options.cameras):
         streams = False
     if streams:  # the lanes allocate through Warp: JAX takes half the GPU, not 3/4
@@ -92,7 +95,7 @@ def make(options: BackendOptions) -> MjxBackend:
                          merge=bool(options.settings.get("merge", False)),
                          merge_growth=merge_growth(options.settings.get("merge_growth")),
                          graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
-                         streams=streams if streams == "auto" else bool(streams),
+                         streams=streams,
                          program_buckets=options.settings.get("program_buckets"))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
@@ -105,7 +108,7 @@ def streams_may_run(impl: Any, cameras: Sequence[str]) -> bool:
     yet on a GPU), and an NVIDIA device visible (`nvidia_devices`). The backend then decides (`choose_streams`).
 
     Why auto: at the protocol's scale (850 plans in 141 buckets, 1,200 environments, H200, 2026-12-02) the jitted
-    tick stepped the buckets one after another at 265-290 interactions/s; on streams the same buckets' physics ran
+    tick stepped the buckets one after another at 259-293 interactions/s; on streams the same buckets' physics ran
     4.6x to 11x faster (`dojo bench sim`, README)."""
     from dojo.backends.mjx.cache import warp_installed
 

@@ -107,21 +107,19 @@ def _inbox(wp: Any, arrays: Sequence[Any]) -> tuple[Any, list[Copy]]:
     """A flat buffer of words holding `arrays` end to end in order, and the copies from it into them (a lane's
     inbox): arrays of 32-bit scalars as words, of 1-byte scalars as bytes (`inbox_words`; `pack_words` lays them
     out alike). Empty arrays take no room; other widths are refused by dtype."""
-    arrays = [array for array in arrays if array.size]
-    counts = []
-    for array in arrays:
+    laid = []  # (array, its words, whether copied as bytes)
+    for array in (array for array in arrays if array.size):
         count = _word_count(wp, array)
-        if count is None and array.is_contiguous and wp.types.type_size_in_bytes(array.dtype) == 1:
-            count = inbox_words(array.size, 1)
-        if count is None:
+        as_bytes = count is None and array.is_contiguous and wp.types.type_size_in_bytes(array.dtype) == 1
+        if count is None and not as_bytes:
             raise ValueError(f"a lane exchanges contiguous arrays of 32-bit or 1-byte scalars, not {array.dtype} "
                              f"{array.shape}")
-        counts.append(count)
-    offsets, total = word_offsets(counts)
+        laid.append((array, inbox_words(array.size, 1) if as_bytes else count, as_bytes))
+    offsets, total = word_offsets([count for _, count, _ in laid])
     buffer = wp.zeros(total, dtype=wp.float32)
     copies: list[Copy] = []
-    for array, at, count in zip(arrays, offsets, counts):
-        if _word_count(wp, array) is None:  # 1-byte scalars: exactly their bytes, not the word's padding
+    for (array, count, as_bytes), at in zip(laid, offsets):
+        if as_bytes:  # exactly the field's bytes, not the last word's padding
             copies.append((_byte_view(wp, array, 0, array.size), _byte_view(wp, buffer, 4 * at, array.size),
                            0, 0, array.size))
         else:
