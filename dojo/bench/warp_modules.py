@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from dojo.backends.mjx.batch import contact_capacity
 from dojo.backends.mjx.bucket import Bucket
@@ -82,10 +82,11 @@ def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int
 
 
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
-    """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`), bucketed as the mjx
-    backend would (`backend.merge`, `backend.merge_growth`; `dof_quantum`: their DoFs rounded up, `dof_rounding`),
-    and the Warp modules their steps need; with `arch`, those modules compiled for that GPU architecture into
-    Warp's kernel cache (`jobs` at a time), on this machine, GPU or not."""
+    """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`) that `dojo run
+    backend=mjx` would give the mjx backend (`mjx_plans`), bucketed as it would (`backend.merge`,
+    `backend.merge_growth`; `dof_quantum`: their DoFs rounded up, `dof_rounding`), and the Warp modules their steps
+    need; with `arch`, those modules compiled for that GPU architecture into Warp's kernel cache (`jobs` at a
+    time), on this machine, GPU or not."""
     from importlib.metadata import version
 
     from dojo.backends.mjx import merge_growth
@@ -99,13 +100,35 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
         raise RuntimeError("dojo bench kernels needs warp-lang (pip install 'warp-lang>=1.19'); MuJoCo Warp itself "
                            "ships inside mujoco-mjx") from None
     backend = cfg.get("backend") or {}
-    plans = load_plans(cfg)
+    plans, elsewhere = mjx_plans(load_plans(cfg), backend)
     merge = bool(backend.get("merge", False))
     quantum = int(cfg.get("dof_quantum") or 1)
     buckets = [round_bucket(b, quantum)
                for b in make_buckets(plans, merge=merge, growth=merge_growth(backend.get("merge_growth")))]
     log.info("%d plans in %d buckets", len(plans), len(buckets))
-    return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans), "merge": merge,
+    return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
+            "run_on_mujoco": elsewhere, "merge": merge,
             "dof_quantum": quantum,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
             **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1))}
+
+
+def mjx_plans(plans: Sequence[Any], settings: Mapping[str, Any]) -> tuple[list[Any], dict[str, int]]:
+    """(the plans the mjx backend runs, {task: plans} of those `dojo run backend=mjx` sends to its fallback for a
+    feature mjx lacks, `dojo.evaluation.routing`). Why: with `backend.merge` the buckets, so their modules, depend
+    on which tasks share them, and kernels compiled for plans the run never gives mjx can miss the run's own
+    buckets; without merge they are modules compiled for nothing."""
+    from dojo.backends.registry import unsupported_features
+
+    kept, elsewhere, verdicts = [], Counter[str](), {}
+    for plan in plans:
+        needs = tuple(plan.requires)
+        if needs not in verdicts:
+            verdicts[needs] = bool(unsupported_features("mjx", needs, settings)) if needs else False
+        if verdicts[needs]:
+            elsewhere[plan.task] += 1
+        else:
+            kept.append(plan)
+    if not kept:
+        raise ValueError(f"no plan here runs on backend mjx: {dict(elsewhere)} would run on its fallback")
+    return kept, dict(sorted(elsewhere.items()))

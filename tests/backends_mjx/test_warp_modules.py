@@ -105,3 +105,21 @@ def test_a_model_of_a_thousand_geoms_sorts_in_its_broadphase_and_is_recorded_all
     assert bucket.model.ngeom >= 1000
     assert any(name.startswith("_sap_broadphase") for name in bucket_modules(bucket))
     assert warp.utils.segmented_sort_pairs is sort
+
+
+@needs_warp
+def test_the_kernels_are_those_of_the_plans_a_mjx_run_keeps_on_mjx():
+    """`dojo bench kernels` buckets what `dojo run backend=mjx` gives the mjx backend: a task with scripted events
+    runs on `mujoco` (`dojo.evaluation.routing`), so its plans bring no buckets and are counted apart."""
+    from dojo.bench.warp_modules import bench_kernels, mjx_plans
+    from dojo.bench.sim_bench import load_plans
+
+    cfg = {"tasks": ["push_t", "insert_key"], "episodes": 1, "backend": {}}
+    plans = load_plans(cfg)
+    kept, elsewhere = mjx_plans(plans, {})
+    assert [p.task for p in kept] == ["push_t"] and elsewhere == {"insert_key": 1}
+    figures = bench_kernels(cfg)
+    assert figures["tasks"] == ["push_t"] and figures["run_on_mujoco"] == {"insert_key": 1}
+    assert figures["buckets"] == 1
+    with pytest.raises(ValueError, match="no plan here runs on backend mjx"):
+        mjx_plans([p for p in plans if p.task == "insert_key"], {})
