@@ -272,6 +272,26 @@ def test_flags_of_one_byte_travel_four_to_a_word_into_exactly_their_bytes() -> N
         _inbox(wp, [wp.zeros(4, dtype=wp.float64, device="cpu")])
 
 
+def test_words_packed_on_the_host_are_those_jax_packs_bit_for_bit() -> None:
+    """An engine packs its first outbox words on the host (`pack_host_words`) and every later tick in JAX
+    (`pack_words`): both must lay out every width, sign, NaN payload, empty array and alignment gap alike."""
+    import jax.numpy as jnp
+
+    from dojo.backends.mjx.streams import pack_host_words, pack_words
+
+    nan = np.array([0x7FC00001, 0xFFFFFFFF], np.uint32).view(np.float32)  # NaNs whose payloads must survive
+    values = [np.arange(-4, 3, dtype=np.int32).reshape(7, 1), np.array([True, False, True, True, False]),
+              np.zeros((3, 0), np.float32), np.array([-128, -1, 0, 127], np.int8), nan,
+              np.array([[np.pi, -0.0, np.inf]], np.float32)]
+    for align in (1, 8):
+        host, device = pack_host_words(values, align), np.asarray(pack_words([jnp.asarray(v) for v in values], align))
+        assert host.dtype == np.float32 and host.shape == device.shape
+        np.testing.assert_array_equal(host.view(np.uint32), device.view(np.uint32))
+    assert pack_host_words([]).shape == (0,)
+    with pytest.raises(ValueError, match="32-bit or 1-byte scalars, not float64"):
+        pack_host_words([np.zeros(2)])
+
+
 def test_a_bucket_whose_plans_light_the_scene_differently_ticks_on_streams_as_the_jitted_tick() -> None:
     """Random-setting plans whose lights differ (`light_active`, bool per world in MuJoCo Warp) share a bucket:
     on streams the tick runs (it used to refuse the flags' width), reaches the jitted tick's state with a refill,

@@ -372,7 +372,7 @@ class Engine:
         as `eq_active`, and MJX's own token, which no tick changes), so that a half takes one array a bucket where
         it took some 150 data and 136 model leaves: each costs host time on every call. `Engine.data` unpacks the
         words when read (`_unpack`)."""
-        from dojo.backends.mjx.streams import OUTBOX_ALIGN, StreamPhysics, pack_words
+        from dojo.backends.mjx.streams import OUTBOX_ALIGN, StreamPhysics, pack_host_words
 
         names = [jax.tree_util.keystr(path[1:], simple=True, separator=".") for path, _ in data_paths]
         bucket_of = [path[0].idx for path, _ in data_paths]
@@ -395,7 +395,7 @@ class Engine:
         model_paths = jax.tree_util.tree_flatten_with_path(self._models())[0]
         self._absent_models = [_NotGiven("model." + jax.tree_util.keystr(path[1:], simple=True, separator="."))
                                for path, _ in model_paths]
-        self._words = [p.put_batched(pack_words([stable[k] for k in at], OUTBOX_ALIGN))
+        self._words = [p.put_batched(pack_host_words([np.asarray(stable[k]) for k in at], OUTBOX_ALIGN))
                        for at in self._returned_at]
         shardings = (p.replicated, p.batched, p.batched, p.replicated, p.batched)  # tables, words, extra, flags, ...
         self._before = jax.jit(self._split_flat(self._before_all), donate_argnums=(2,), in_shardings=shardings,

@@ -320,6 +320,22 @@ def pack_words(arrays: Sequence[Any], align: int = 1) -> Any:
     return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.float32)
 
 
+def pack_host_words(arrays: Sequence[np.ndarray], align: int = 1) -> np.ndarray:
+    """`pack_words` on the host: the same words, bit for bit, from numpy arrays. Why: an engine's first words are
+    packed once per bucket outside any jitted function, where `pack_words` ran some 500 eager JAX operations a
+    bucket, each a program of its own shapes to compile or look up (a sixth of a 141-bucket engine's 406 s set-up
+    on an H200, 2026-12-03); here it is a few copies."""
+    offsets, total = word_offsets([_jax_words(a) for a in arrays], align)
+    words = np.zeros(total, np.float32)
+    for a, start in zip(arrays, offsets):
+        if a.size:
+            flat = np.ascontiguousarray(a).reshape(-1)
+            if flat.dtype.itemsize == 1:  # bool as 0/1, int8 as its two's-complement byte, four to a word
+                flat = np.pad(flat.astype(np.uint8), (0, -flat.size % 4))
+            words[start:start + _jax_words(a)] = flat.view(np.float32)
+    return words
+
+
 def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
     """Flat float32 words laid out as `pack_words(..., align)` lays out arrays shaped like `like`, as those arrays
     of their dtypes with their bits kept."""
