@@ -6,6 +6,7 @@ the state as it was; and the one varying field it cannot batch per world is one 
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import jax
 import numpy as np
@@ -105,13 +106,20 @@ def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_t
     _assert_split_ticks_as_jitted(buckets)
 
 
-def test_buckets_in_groups_of_programs_tick_bit_for_bit_as_one_program(buckets) -> None:
+def test_buckets_in_groups_of_programs_tick_bit_for_bit_as_one_program(buckets, caplog) -> None:
     """`backend.program_buckets`: the 3 buckets in programs of 2 and 1 (and on streams, of 1 each) reach the same
-    state as one program over all three, refill included, each group compiling once."""
+    state as one program over all three, refill included, each group compiling once; the set-up says each group
+    as it is built (minutes at a suite's scale)."""
     one = _run_engine(buckets, refill=True)
     assert isinstance(one, Engine)
     for per_program, streams in ((2, False), (1, True)):
-        groups = _run_engine(buckets, streams=streams, refill=True, per_program=per_program)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="dojo.backends.mjx.batch"):
+            groups = _run_engine(buckets, streams=streams, refill=True, per_program=per_program)
+        built = [r.getMessage() for r in caplog.records if "engine group" in r.getMessage()]
+        assert len(built) == len(groups.engines) and built[-1].startswith(
+            f"mjx backend: engine group {len(groups.engines)} of {len(groups.engines)} built (buckets "
+            f"{(len(groups.engines) - 1) * per_program + 1}-3 of 3, ")
         assert isinstance(groups, EngineGroups) and len(groups.engines) == -(-len(buckets) // per_program)
         assert [a.bucket.key for a in groups.arrays] == [a.bucket.key for a in one.arrays]
         for a, b in zip(one.data, groups.data):
