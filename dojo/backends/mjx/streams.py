@@ -323,8 +323,8 @@ def pack_words(arrays: Sequence[Any], align: int = 1) -> Any:
 def pack_host_words(arrays: Sequence[np.ndarray], align: int = 1) -> np.ndarray:
     """`pack_words` on the host: the same words, bit for bit, from numpy arrays. Why: an engine's first words are
     packed once per bucket outside any jitted function, where `pack_words` ran some 500 eager JAX operations a
-    bucket, each a program of its own shapes to compile or look up (a sixth of a 141-bucket engine's 406 s set-up
-    on an H200, 2026-12-03); here it is a few copies."""
+    bucket, each a program of its own shapes to compile or look up (6-8 s of every 16 buckets' 30 s set-up on an
+    H200, 2026-12-03); here it is a few copies."""
     offsets, total = word_offsets([_jax_words(a) for a in arrays], align)
     words = np.zeros(total, np.float32)
     for a, start in zip(arrays, offsets):
