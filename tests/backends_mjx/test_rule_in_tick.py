@@ -43,16 +43,19 @@ def queue(tmp_path_factory: pytest.TempPathFactory) -> list[PlannedEpisode]:
 
 
 class _Asked:
-    """A policy link that counts the chunks it was asked for."""
+    """A policy link that counts the chunks it was asked for, and keeps the privileged state of each observation
+    it was given in `seen` (when given a list)."""
 
-    def __init__(self, link: Any) -> None:
-        self.link, self.metadata, self.chunks = link, link.metadata, 0
+    def __init__(self, link: Any, seen: list[tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        self.link, self.metadata, self.chunks, self.seen = link, link.metadata, 0, seen
 
     def reset(self, env_ids: Sequence[int]) -> None:
         self.link.reset(env_ids)
 
     def act(self, obs: Sequence[Any], env_ids: Sequence[int]) -> np.ndarray:
         self.chunks += len(env_ids)
+        if self.seen is not None:
+            self.seen.extend((o["privileged"]["qpos"], o["privileged"]["qvel"]) for o in obs)
         return self.link.act(obs, env_ids)
 
     def device_rule(self) -> Any:
@@ -66,13 +69,15 @@ class _Asked:
 
 
 def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, num_envs: int = 2,
-         known: list[PlannedEpisode] | None = None, streams: bool = False) -> tuple[dict[tuple, tuple], Any, int]:
+         known: list[PlannedEpisode] | None = None, streams: bool = False,
+         seen: list[tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[dict[tuple, tuple], Any, int]:
     """`dojo run`'s loop on the mjx backend (`backend.streams` as given), which knows the plans of `known`
     (default: the queue's): each episode's result row (by key), the backend after the run and how many chunks the
-    policy was asked for."""
-    link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"))
+    policy was asked for. With `seen` the backend is privileged and the list gets each observation's state."""
+    link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"), seen)
     options = BackendOptions(settings={"impl": "warp", "streams": streams}, action_modes=("joint",),
-                             plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue})
+                             plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue},
+                             privileged=seen is not None)
     built = []
 
     def factory() -> Any:
@@ -114,6 +119,19 @@ def test_physics_on_streams_records_what_the_jitted_tick_records_bit_for_bit(que
     assert split_backend._engine._physics is not None and split_backend._engine.compilations() == 1
     assert split == host and asked == 3 * 2
     np.testing.assert_array_equal(split_backend.qpos(), host_backend.qpos())
+
+
+def test_the_privileged_state_on_streams_is_the_jitted_ticks(queue):
+    """A privileged policy's state (qpos, qvel each observation) on streams is read from each bucket's words
+    (`Engine.field`), not by unpacking every leaf: the same arrays, bit for bit, as on the jitted tick."""
+    jitted, split = [], []
+    _run(queue, {"name": "zero"}, "off", seen=jitted)
+    _, split_backend, _ = _run(queue, {"name": "zero"}, "off", streams=True, seen=split)
+    assert split_backend._engine._physics is not None and len(split) == len(jitted) == 3 * 2
+    for (q, v), (q0, v0) in zip(split, jitted):
+        np.testing.assert_array_equal(np.asarray(q), np.asarray(q0))
+        np.testing.assert_array_equal(np.asarray(v), np.asarray(v0))
+    assert split_backend._engine._unpack._cache_size() == 0
 
 
 def test_random_in_the_tick_is_reproducible_from_its_seed_and_restarts_with_each_episode(queue):

@@ -531,9 +531,9 @@ class MjxBackend(Backend):
         def state(bucket: int) -> tuple[np.ndarray, np.ndarray | None]:
             """One device-to-host copy of a bucket's qpos (and qvel when privileged) per call."""
             if bucket not in fetched:
-                data = self._engine.data[bucket]
-                fetched[bucket] = (np.asarray(data.qpos, np.float64),
-                                   np.asarray(data.qvel, np.float64) if self.privileged else None)
+                fetched[bucket] = (np.asarray(self._engine.field(bucket, "qpos"), np.float64),
+                                   np.asarray(self._engine.field(bucket, "qvel"), np.float64) if self.privileged
+                                   else None)
             return fetched[bucket]
 
         if self.render_config is not None:
@@ -578,8 +578,8 @@ class MjxBackend(Backend):
         """Generalised positions of slots in their plan's own layout (parked clutter slots dropped) [n, nq]."""
         ids = resolve_ids(env_ids, self.num_envs)
         table = self._slots
-        out = [self._layouts[table.plans[s].hash].qpos(self._engine.data[table.bucket[s]].qpos[table.row[s]])
-               for s in ids.tolist()]
+        qpos = {k: np.asarray(self._engine.field(k, "qpos")) for k in set(table.bucket[ids].tolist())}
+        out = [self._layouts[table.plans[s].hash].qpos(qpos[table.bucket[s]][table.row[s]]) for s in ids.tolist()]
         return np.stack(out) if out else np.zeros((0, 0))
 
 

@@ -309,14 +309,14 @@ def pack_words(arrays: Sequence[Any], align: int = 1) -> Any:
     (`inbox_words`): what a lane's inbox takes in one copy (`align` 1), or its outbox holds (`OUTBOX_ALIGN`)."""
     import jax.numpy as jnp
 
-    offsets, _ = word_offsets([_jax_words(a) for a in arrays], align)
+    offsets, _ = word_offsets([words_of(a) for a in arrays], align)
     parts, at = [], 0
     for a, start in zip(arrays, offsets):
         if a.size:
             if start > at:
                 parts.append(jnp.zeros(start - at, jnp.float32))
             parts.append(_as_words(a))
-            at = start + _jax_words(a)
+            at = start + words_of(a)
     return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.float32)
 
 
@@ -325,14 +325,14 @@ def pack_host_words(arrays: Sequence[np.ndarray], align: int = 1) -> np.ndarray:
     packed once per bucket outside any jitted function, where `pack_words` ran some 500 eager JAX operations a
     bucket, each a program of its own shapes to compile or look up (6-8 s of every 16 buckets' 30 s set-up on an
     H200, 2026-12-03); here it is a few copies."""
-    offsets, total = word_offsets([_jax_words(a) for a in arrays], align)
+    offsets, total = word_offsets([words_of(a) for a in arrays], align)
     words = np.zeros(total, np.float32)
     for a, start in zip(arrays, offsets):
         if a.size:
             flat = np.ascontiguousarray(a).reshape(-1)
             if flat.dtype.itemsize == 1:  # bool as 0/1, int8 as its two's-complement byte, four to a word
                 flat = np.pad(flat.astype(np.uint8), (0, -flat.size % 4))
-            words[start:start + _jax_words(a)] = flat.view(np.float32)
+            words[start:start + words_of(a)] = flat.view(np.float32)
     return words
 
 
@@ -342,10 +342,10 @@ def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
     import jax
     import jax.numpy as jnp
 
-    offsets, _ = word_offsets([_jax_words(a) for a in like], align)
+    offsets, _ = word_offsets([words_of(a) for a in like], align)
     out = []
     for a, at in zip(like, offsets):
-        part = words[at:at + _jax_words(a)]
+        part = words[at:at + words_of(a)]
         if a.dtype.itemsize == 1:
             part = jax.lax.bitcast_convert_type(part, jnp.uint8).reshape(-1)[:a.size].astype(a.dtype)
         else:
@@ -354,8 +354,9 @@ def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
     return out
 
 
-def _jax_words(a: Any) -> int:
-    """The words JAX array `a` takes in a flat array of words (`inbox_words`); other widths are refused by dtype."""
+def words_of(a: Any) -> int:
+    """The words array `a` (JAX, numpy, or a `jax.ShapeDtypeStruct`) takes in a flat array of words
+    (`inbox_words`); other widths are refused by dtype."""
     count = inbox_words(a.size, a.dtype.itemsize)
     if count is None:
         raise ValueError(f"a lane exchanges arrays of 32-bit or 1-byte scalars, not {a.dtype} {a.shape}")
