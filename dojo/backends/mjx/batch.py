@@ -26,7 +26,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
-from functools import partial
+from functools import partial, reduce
 from typing import Any, Callable, Sequence
 
 import jax
@@ -458,14 +458,15 @@ class Engine:
         return self._data
 
     def field(self, bucket: int, name: str) -> jax.Array:
-        """One data field of one bucket after the last tick (`qpos`, `qvel`, ...), as `data[bucket].<name>` holds it.
+        """One data field of one bucket after the last tick (`qpos`, `qvel`, `_impl.nacon`: dotted into MJX's
+        implementation data), as `data[bucket].<name>` holds it.
         With `streams` it is read out of the bucket's words alone, where `data` unpacks every leaf of every bucket
         in one program: a privileged policy reads two fields a bucket each tick, and that program's first call
         compiled for 10 s on 8 buckets on the CI machine (2026-12-03)."""
         from dojo.backends.mjx.streams import unpack_words, words_of
 
         if self._physics is None or self._data_leaves is not None or (bucket, name) not in self._leaf_at:
-            return getattr(self.data[bucket], name)  # at hand already, or not a leaf of its own
+            return reduce(getattr, name.split("."), self.data[bucket])  # at hand already, or not a leaf of its own
         if name not in self._returned_words[bucket]:  # a leaf no tick changes, or an empty one
             return jnp.asarray(self._split_leaves[self._leaf_at[bucket, name]])
         start, like = self._returned_words[bucket][name]
