@@ -170,6 +170,39 @@ def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted
     _assert_split_ticks_as_jitted([bucket])
 
 
+@pytest.mark.parametrize("impl", ["warp", "jax"])
+def test_the_first_batch_is_the_one_mjx_batches_each_leaf_as_it_was_before(buckets, impl) -> None:
+    """`_initial_data` builds one environment's data on the host and broadcasts it; the batch must be the one
+    vmapping MJX's `make_data` gives, leaf for leaf: values, dtypes, weak types, and which leaves are per
+    environment at all (Warp's contact pool is one for every world, so `nacon` is not batched)."""
+    from functools import partial
+
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from dojo.backends.mjx.batch import _initial_data, _prepare, contact_capacity
+    from dojo.backends.mjx.sharding import Placement
+
+    for bucket in buckets:
+        arr = _prepare(bucket, B, impl, Placement.over(None, impl))
+        made = partial(mjx.make_data, bucket.model, impl=impl)
+        if impl == "warp":
+            contacts, rows = contact_capacity(bucket)
+            made = partial(made, naconmax=contacts * B, njmax=rows)
+        q0 = jnp.broadcast_to(arr.table["qpos"][0], (B, bucket.model.nq))
+        vmapped = jax.tree_util.tree_flatten_with_path(jax.vmap(lambda q: made().replace(qpos=q))(q0))[0]
+        host, _ = jax.tree.flatten(_initial_data(arr, impl))
+        assert len(host) == len(vmapped)
+        for (path, want), got in zip(vmapped, host):
+            assert isinstance(got, np.ndarray), jax.tree_util.keystr(path)
+            made_type, got_type = jax.typeof(want), jax.typeof(jnp.asarray(got))
+            assert (got_type.shape, got_type.dtype, got_type.weak_type) == (
+                made_type.shape, made_type.dtype, made_type.weak_type), jax.tree_util.keystr(path)
+            np.testing.assert_array_equal(got, np.asarray(want), err_msg=jax.tree_util.keystr(path))
+        if impl == "warp":
+            assert np.shape(_initial_data(arr, impl)._impl.nacon) == (1,)
+
+
 def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:
     with pytest.raises(ValueError, match="impl=warp and devices=1"):
         Engine(buckets, [B] * len(buckets), "jax", streams=True)
