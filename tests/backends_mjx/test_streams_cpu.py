@@ -191,7 +191,8 @@ def test_the_first_batch_is_the_one_mjx_batches_each_leaf_as_it_was_before(bucke
             made = partial(made, naconmax=contacts * B, njmax=rows)
         q0 = jnp.broadcast_to(arr.table["qpos"][0], (B, bucket.model.nq))
         vmapped = jax.tree_util.tree_flatten_with_path(jax.vmap(lambda q: made().replace(qpos=q))(q0))[0]
-        host, _ = jax.tree.flatten(_initial_data(arr, impl))
+        batch = _initial_data(arr, impl)
+        host, _ = jax.tree.flatten(batch)
         assert len(host) == len(vmapped)
         for (path, want), got in zip(vmapped, host):
             assert isinstance(got, np.ndarray), jax.tree_util.keystr(path)
@@ -200,7 +201,7 @@ def test_the_first_batch_is_the_one_mjx_batches_each_leaf_as_it_was_before(bucke
                 made_type.shape, made_type.dtype, made_type.weak_type), jax.tree_util.keystr(path)
             np.testing.assert_array_equal(got, np.asarray(want), err_msg=jax.tree_util.keystr(path))
         if impl == "warp":
-            assert np.shape(_initial_data(arr, impl)._impl.nacon) == (1,)
+            assert np.shape(batch._impl.nacon) == (1,)
 
 
 def test_physics_on_streams_needs_mujoco_warp_on_one_device(buckets) -> None:

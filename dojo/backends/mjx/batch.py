@@ -26,7 +26,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
-from functools import partial, reduce
+from functools import reduce
 from typing import Any, Callable, Sequence
 
 import jax
@@ -166,7 +166,7 @@ def _initial_data(arr: BucketArrays, impl: str) -> Tree:
     else:
         one = mjx.make_data(m, impl="jax")
     one = jax.device_get(one)
-    one = one.replace(qpos=np.asarray(arr.bucket.table()["qpos"][0], one.qpos.dtype))
+    one = one.replace(qpos=np.asarray(arr.bucket.members[0].qpos, one.qpos.dtype))  # row 0 of `table`
     # which leaves a batch holds per environment is MJX's to say (Warp's contact pool is one for all worlds)
     shapes = jax.eval_shape(jax.vmap(lambda q: one.replace(qpos=q)), np.broadcast_to(one.qpos, (arr.size, m.nq)))
     return jax.tree.map(lambda x, s: np.broadcast_to(x, s.shape), one, shapes)
