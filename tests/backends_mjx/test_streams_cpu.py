@@ -213,7 +213,8 @@ def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_
     """Between ticks each bucket's data is its lane's words (one array), which both halves take instead of some
     150 data and 136 model leaves (every array a call takes costs host time); `Engine.data` unpacks them when read,
     and overflow is read from the lanes without unpacking. A hook that reads a model field other than the varying
-    rows fails on the first tick with that field's name, instead of reading a wrong value."""
+    rows fails when the engine is built (tracing the halves for the extra state's types) with that field's name,
+    instead of reading a wrong value."""
     from dojo.backends.mjx.batch import Hooks
 
     engine = _run_engine(buckets, streams=True)
@@ -226,10 +227,8 @@ def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_
         def control(self, arr, m, data, inputs):
             return inputs * m.body_mass[1], ()
 
-    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=ReadsMasses(), streams=True)
-    on = [np.ones(B, bool)] * len(buckets)
     with pytest.raises(TypeError, match=r"model\.body_mass: not given to the halves"):
-        engine.tick([np.zeros(B, np.int32)] * len(buckets), on, on, _controls(buckets))
+        Engine(buckets, [B] * len(buckets), "warp", hooks=ReadsMasses(), streams=True)
 
 
 def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
@@ -271,7 +270,8 @@ def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -
 def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) -> None:
     """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, a field of
     another width is refused by name rather than copied short, and so is a data leaf whose layout in MJX differs
-    from MuJoCo Warp's (the engine would keep it at its first value). Flags of one byte (`light_active`) travel
+    from MuJoCo Warp's (the engine would keep it at its first value) or whose element type does (the halves would
+    read floats' bits as ints: the engine types its data as `make_data` made it). Flags of one byte (`light_active`) travel
     four to a word: the test after this one."""
     import jax.numpy as jnp
     import warp as wp
@@ -295,8 +295,13 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) ->
         np.testing.assert_array_equal(np.asarray(a).view(np.uint32), np.asarray(b).view(np.uint32))
     from dojo.backends.mjx.streams import StreamEngine
 
+    nq, nv = buckets[0].model.nq, buckets[0].model.nv
     with pytest.raises(ValueError, match=r"differ in layout for \['qpos'\]"):
-        StreamEngine(buckets[:1], [B], [[]], device="cpu", exchange=[{"qpos": 1, "qvel": B * buckets[0].model.nv}])
+        StreamEngine(buckets[:1], [B], [[]], device="cpu",
+                     exchange=[{"qpos": (1, np.float32), "qvel": (B * nv, np.float32)}])
+    with pytest.raises(ValueError, match=r"differ in element type for qvel \(int32 in MJX, float32 in Warp\)"):
+        StreamEngine(buckets[:1], [B], [[]], device="cpu",
+                     exchange=[{"qpos": (B * nq, np.float32), "qvel": (B * nv, np.int32)}])
 
 
 def test_flags_of_one_byte_travel_four_to_a_word_into_exactly_their_bytes() -> None:
@@ -477,7 +482,8 @@ def test_a_lanes_data_lives_in_its_outbox_each_field_where_the_halves_unpack_it(
 
     bucket = buckets[0]
     nv, nq = bucket.model.nv, bucket.model.nq
-    engine = StreamEngine([bucket], [B], [[]], device="cpu", exchange=[{"qpos": B * nq, "qvel": B * nv}])
+    engine = StreamEngine([bucket], [B], [[]], device="cpu",
+                          exchange=[{"qpos": (B * nq, np.float32), "qvel": (B * nv, np.float32)}])
     lane = engine.lanes[0]
     assert lane.returned == ("qpos", "qvel") and lane.programs[0].loads
     offsets, total = word_offsets([B * nq, B * nv], OUTBOX_ALIGN)

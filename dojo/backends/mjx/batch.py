@@ -353,20 +353,26 @@ class Engine:
         extra = tuple(self.hooks.init_extra(a) for a in self.arrays)
         inputs = tuple(example_inputs) if example_inputs is not None else tuple(
             jnp.zeros((a.size, a.bucket.model.nu), jnp.float32) for a in self.arrays)
-        flags = self._flags()
-        shapes = jax.eval_shape(self._tick_all, self._models(), self._tables(), data, extra, *flags[:3], inputs,
-                                flags[3])
         self._model_leaves, self._model_def = jax.tree.flatten(self._models())
         self._table_leaves, self._table_def = jax.tree.flatten(self._tables())
-        leaves, self._data_def = jax.tree.flatten(_stable(data, tuple(s[0] for s in shapes), p))
+        if streams:  # the lanes' words hold the data as `make_data` typed it (`StreamEngine` checks Warp's types)
+            leaves, self._data_def = jax.tree.flatten(jax.tree.map(np.asarray, data))
+            self._extra_def = jax.tree.structure(extra)
+        else:
+            flags = self._flags()
+            shapes = jax.eval_shape(self._tick_all, self._models(), self._tables(), data, extra, *flags[:3], inputs,
+                                    flags[3])
+            leaves, self._data_def = jax.tree.flatten(_stable(data, tuple(s[0] for s in shapes), p))
+            self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
         self._data_empty = {k: x for k, x in enumerate(leaves) if x.size == 0}
         """The data's empty arrays by position (fields a scene lacks: tendons, sensors, flex): kept out of the
         tick's arguments and outputs, where each array costs a call its handling whatever its size (38 of a
         MuJoCo Warp data's 185 on the built-in tasks)."""
         self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
-        self._extra_leaves, self._extra_def = jax.tree.flatten(_stable(extra, tuple(s[1] for s in shapes), p))
         if streams:
             self._split(buckets, sizes, jax.tree_util.tree_flatten_with_path(data)[0])
+            self._extra_leaves = jax.tree.leaves(_stable(extra, self._split_extra_types(extra, inputs), p))
+            self._data_leaves = None  # unpacked from the words when `data` is read, as after every split tick
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
@@ -387,8 +393,8 @@ class Engine:
         bucket_of = [path[0].idx for path, _ in data_paths]
         kept = [k for k in range(len(names)) if k not in self._data_empty]
         stable = dict(zip(kept, self._data_leaves))
-        leaf_words = [{names[k]: stable[k].size for k in kept if bucket_of[k] == b and stable[k].dtype.itemsize == 4}
-                      for b in range(len(buckets))]
+        leaf_words = [{names[k]: (stable[k].size, stable[k].dtype) for k in kept
+                       if bucket_of[k] == b and stable[k].dtype.itemsize == 4} for b in range(len(buckets))]
         self._physics = StreamPhysics(buckets, sizes, leaf_words)
         position = {(bucket_of[k], names[k]): k for k in kept}
         self._returned_at = [[position[b, name] for name in returned]
@@ -418,6 +424,21 @@ class Engine:
         self._after = jax.jit(self._split_flat(self._after_all, keeps_words=True), donate_argnums=(2,),
                               in_shardings=shardings, out_shardings=p.batched)
         self._unpack = jax.jit(lambda words: [x for x in self._unpacked(words) if x.size])
+
+    def _split_extra_types(self, extra: tuple[Tree, ...], inputs: tuple[Tree, ...]) -> tuple[Tree, ...]:
+        """The types of the extra state after a split tick from `extra` (`jax.eval_shape` of both halves, no
+        compilation), so that its types are a fixed point from the first call on, as `_stable` makes them for the
+        jitted tick.
+
+        Why not the whole tick's `eval_shape`: under `streams` the data's types are the lanes' words', and tracing
+        the physics and the backend's refresh (a whole forward) for the extra state's types alone took some 56 s of
+        a 238 s engine build for the protocol's 141 buckets on an H200 (2026-12-03, stack samples)."""
+        flags = jax.ShapeDtypeStruct((4, sum(a.size for a in self.arrays)), jnp.int32)
+        found, before = jax.eval_shape(self._before, self._table_leaves, self._words, jax.tree.leaves(extra), flags,
+                                       inputs)
+        found, _, _ = jax.eval_shape(self._after, self._table_leaves, self._words, found, flags,
+                                     tuple(b[0] for b in before))
+        return jax.tree.unflatten(self._extra_def, found)
 
     def _unpacked(self, words: Sequence[jax.Array]) -> list[jax.Array]:
         """The data's leaves (`_split_leaves` filled in) from each bucket's words."""

@@ -387,12 +387,12 @@ class StreamEngine:
 
     def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
                  serial: bool = False, device: str | None = None,
-                 exchange: Sequence[dict[str, int]] | None = None) -> None:
+                 exchange: Sequence[dict[str, tuple[int, np.dtype]]] | None = None) -> None:
         """`device`: Warp's device for the lanes (None: Warp's default, the GPU where there is one). `exchange`
-        (`StreamPhysics`), per bucket {MJX data leaf name: its words}: each lane loads every field of
-        `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step and refreshes,
-        all inside its graph, on data whose fields behind those leaves (`lane_array`) live in its outbox (`_house`),
-        so that a tick moves one buffer each way per bucket; `controls` is then unused."""
+        (`StreamPhysics`), per bucket {MJX data leaf name: (its words, its element type)}: each lane loads every
+        field of `exchange_fields` from its inbox, steps, puts back the state of the worlds that do not step and
+        refreshes, all inside its graph, on data whose fields behind those leaves (`lane_array`) live in its outbox
+        (`_house`), so that a tick moves one buffer each way per bucket; `controls` is then unused."""
         import warp as wp
         from mujoco.mjx.third_party import mujoco_warp as mjw
 
@@ -406,7 +406,7 @@ class StreamEngine:
             self._build(buckets, sizes, controls, serial, exchange)
 
     def _build(self, buckets: Sequence[Bucket], sizes: Sequence[int], controls: Sequence[Sequence[np.ndarray]],
-               serial: bool, exchange: Sequence[dict[str, int]] | None) -> None:
+               serial: bool, exchange: Sequence[dict[str, tuple[int, np.dtype]]] | None) -> None:
         """One lane per bucket on the current Warp device (see the class docstring)."""
         wp, mjw = self.wp, self.mjw
         self.on_gpu = self.device.is_cuda
@@ -449,17 +449,26 @@ class StreamEngine:
             self.lanes.append(lane)
         self.synchronize()
 
-    def _exchanging(self, lane: _Lane, leaves: dict[str, int]) -> None:
+    def _exchanging(self, lane: _Lane, leaves: dict[str, tuple[int, np.dtype]]) -> None:
         """`lane`'s inbox, outbox and program under `exchange`: `leaves` are the MJX data leaves of 32-bit elements
-        (name: words) the tick keeps; the outbox houses every one the lane has (`lane.returned`, `_house`), and
-        one it has in another layout is refused by name."""
+        (name: (words, element type)) the tick keeps; the outbox houses every one the lane has (`lane.returned`,
+        `_house`), and one it has in another layout or element type is refused by name. The element type is the
+        engine's guarantee that the halves read the lane's words as the numbers the lane wrote: under `streams`
+        the engine types its data as `make_data` made it, not as a tick returns it."""
         wp = self.wp
         arrays = {name: lane_array(wp, lane.data, name) for name in leaves}
         differ = [name for name, array in arrays.items()
-                  if array is not None and _word_count(wp, array) != leaves[name]]
+                  if array is not None and _word_count(wp, array) != leaves[name][0]]
         if differ:  # a leaf the lane cannot return would stay at its first value in the engine's data
             raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in layout for "
                              f"{differ}; a lane cannot return them")
+        typed = {name: np.dtype(wp.dtype_to_numpy(getattr(array.dtype, "_wp_scalar_type_", array.dtype)))
+                 for name, array in arrays.items() if array is not None}
+        retyped = [f"{name} ({np.dtype(leaves[name][1])} in MJX, {kind} in Warp)" for name, kind in typed.items()
+                   if np.dtype(leaves[name][1]) != kind]
+        if retyped:  # the halves would read the lane's bits as numbers of another kind
+            raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in element type for "
+                             f"{', '.join(retyped)}; a lane cannot return them")
         lane.returned = tuple(name for name, array in arrays.items() if array is not None)
         lane.outbox = _house(wp, lane.data, lane.returned)  # first: the copies in below write the housed fields
         lane.stepping = wp.zeros(lane.size, dtype=wp.int32)
@@ -616,10 +625,11 @@ class StreamPhysics:
     72 ms of a 208 ms tick at 29 buckets); inside the lane's graph it is a few more kernels (`refresh`).
     """
 
-    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int], leaves: Sequence[dict[str, int]]) -> None:
+    def __init__(self, buckets: Sequence[Bucket], sizes: Sequence[int],
+                 leaves: Sequence[dict[str, tuple[int, np.dtype]]]) -> None:
         """The lanes on the device JAX computes on (Warp's CPU device where JAX runs on the CPU, even on a host
         with a GPU), so that the halves and the lanes exchange buffers of one device. `leaves`, per bucket: the
-        MJX data leaves the tick keeps, name: words (`StreamEngine`'s `exchange`)."""
+        MJX data leaves the tick keeps, name: (words, element type) (`StreamEngine`'s `exchange`)."""
         import jax
 
         device = "cpu" if jax.default_backend() == "cpu" else None
