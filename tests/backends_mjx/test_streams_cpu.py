@@ -170,6 +170,29 @@ def test_a_bucket_merged_across_tasks_ticks_on_streams_bit_for_bit_as_the_jitted
     _assert_split_ticks_as_jitted([bucket])
 
 
+def test_the_halves_are_traced_once_when_the_engine_is_built_and_the_ticks_reuse_that_trace(buckets,
+                                                                                              monkeypatch) -> None:
+    """The split engine reads its extra state's types by tracing its two halves (not the whole tick with its
+    physics); the first tick's arguments have exactly the types of that trace (flags on the device as
+    `_packed_flags` puts them, the lanes' outboxes uncommitted), so JAX reuses it instead of tracing each half again:
+    a trace of the protocol's halves took some 26 s of an H200's engine build (2026-12-03)."""
+    traced = {"before": 0, "after": 0}
+    for half in traced:
+        method = getattr(Engine, f"_{half}_all")
+
+        def counted(self, *args, _method=method, _half=half):
+            traced[_half] += 1
+            return _method(self, *args)
+
+        monkeypatch.setattr(Engine, f"_{half}_all", counted)
+    engine = Engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(), streams=True)
+    assert traced == {"before": 1, "after": 1}
+    on, off = [np.ones(B, bool)] * len(buckets), [np.zeros(B, bool)] * len(buckets)
+    for resets, stepping in ((on, off), (off, on)):
+        engine.tick([np.arange(B) % len(b.members) for b in buckets], resets, stepping, _controls(buckets))
+    assert traced == {"before": 1, "after": 1} and engine.compilations() == 1
+
+
 @pytest.mark.parametrize("impl", ["warp", "jax"])
 def test_the_first_batch_is_the_one_mjx_batches_each_leaf_as_it_was_before(buckets, impl) -> None:
     """`_initial_data` builds one environment's data on the host and broadcasts it; the batch must be the one

@@ -432,11 +432,15 @@ class Engine:
 
         Why not the whole tick's `eval_shape`: under `streams` the data's types are the lanes' words', and tracing
         the physics and the backend's refresh (a whole forward) for the extra state's types alone took some 56 s of
-        a 238 s engine build for the protocol's 141 buckets on an H200 (2026-12-03, stack samples)."""
-        flags = jax.ShapeDtypeStruct((4, sum(a.size for a in self.arrays)), jnp.int32)
-        found, before = jax.eval_shape(self._before, self._table_leaves, self._words, jax.tree.leaves(extra), flags,
-                                       inputs)
-        found, _, _ = jax.eval_shape(self._after, self._table_leaves, self._words, found, flags,
+        a 238 s engine build for the protocol's 141 buckets on an H200 (2026-12-03, stack samples). The arguments
+        here have the types of the first tick's, mesh included, so that its call reuses these traces (JAX keys its
+        trace cache on them) instead of tracing each half a second time."""
+        flags = jax.ShapeDtypeStruct((4, sum(a.size for a in self.arrays)), jnp.int32,
+                                     sharding=self.placement.replicated)  # as `_packed_flags` puts them
+        strong = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in jax.tree.leaves(extra)]  # as `_stable` gives them
+        found, before = jax.eval_shape(self._before, self._table_leaves, self._words, strong, flags, inputs)
+        outboxes = [jax.ShapeDtypeStruct(w.shape, w.dtype) for w in self._words]  # views of Warp's arrays
+        found, _, _ = jax.eval_shape(self._after, self._table_leaves, outboxes, found, flags,
                                      tuple(b[0] for b in before))
         return jax.tree.unflatten(self._extra_def, found)
 
