@@ -17,8 +17,9 @@ import json
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from dojo.evaluation.results_store import ResultsStore
 
@@ -78,13 +79,32 @@ def bench_ray(overrides: list[str], workers: list[int], repeats: int = 1) -> dic
 
 
 def dojo_run(args: list[str]) -> subprocess.CompletedProcess[str]:
-    """`dojo run <args> progress=jsonl` in a process of its own (as a user starts it); raises with the end of its
-    stderr when it fails."""
+    """`dojo run <args> progress=jsonl` in a process of its own (as a user starts it), its stdout kept and its stderr
+    both kept and passed on line by line as it comes; raises when it fails (its messages, passed on, say why).
+
+    Why pass stderr on: on a GPU a run's engine build and first tick take minutes (the protocol's: 144 s and 91 s
+    on an H200, 2026-12-03), and a bench that kept its runs' messages until they ended said nothing for all that
+    time (one was stopped after 200 s of silence, not knowing how far it was)."""
     cmd = [sys.executable, "-m", "dojo.cli.main", "run", *args, "progress=jsonl"]
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        said: list[str] = []
+        relay = threading.Thread(target=_relay, args=(proc.stderr, said), daemon=True)
+        relay.start()
+        out = proc.stdout.read()
+        proc.wait()
+        relay.join()
+    done = subprocess.CompletedProcess(cmd, proc.returncode, out, "".join(said))
     if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()[-2000:]}")
+        raise RuntimeError(f"{' '.join(cmd)} exited with {done.returncode} (its messages are above)")
     return done
+
+
+def _relay(stream: TextIO, said: list[str]) -> None:
+    """Each line of `stream` onto this process's stderr as it comes, and into `said`."""
+    for line in stream:
+        said.append(line)
+        sys.stderr.write(line)
+        sys.stderr.flush()
 
 
 def _timed_run(overrides: list[str], workers: int, address: str, store: Path) -> dict[str, Any]:

@@ -27,6 +27,17 @@ def test_steady_rate_runs_between_the_first_and_last_episode_ends():
     assert steady_rates(together)["steady_interactions_per_s"] is None
 
 
+def test_a_benchs_dojo_run_passes_its_messages_on_and_a_failure_points_at_them(capsys):
+    """A bench's `dojo run` can take minutes before its first result on a GPU: its messages reach the bench's
+    stderr as they come rather than when it ends, and a failed run raises saying so, its own message shown once."""
+    from dojo.bench.ray_bench import dojo_run
+
+    with pytest.raises(RuntimeError, match=r"exited with 1 \(its messages are above\)"):
+        dojo_run(["tasks=[no_such_task]"])
+    said = capsys.readouterr().err
+    assert said.count("has no task 'no_such_task'") == 1 and said.startswith("dojo run: error: KeyError")
+
+
 def test_time_split_adds_phases_and_leaves_the_rest():
     split = TimeSplit()
     with split.phase("policy"):
