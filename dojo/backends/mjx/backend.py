@@ -423,7 +423,7 @@ class MjxBackend(Backend):
         lanes = "; each bucket's physics on its own Warp lane between two jitted halves (backend.streams)"
         groups = (f"; its {len(self._buckets)} buckets in {len(self._engine.engines)} programs (backend."
                   f"program_buckets)" if isinstance(self._engine, EngineGroups) else "")
-        log.info("mjx backend: engine built (%.1f s)%s%s; first tick (compiles on a cold cache)",
+        log.info("mjx backend: engine built, its first tick compiled (%.1f s)%s%s; first tick",
                  time.perf_counter() - start, groups, lanes if self.streams else "")
         start = time.perf_counter()
         self.reset()

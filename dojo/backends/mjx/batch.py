@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import reduce
 from typing import Any, Callable, Sequence
@@ -373,10 +375,15 @@ class Engine:
         tick's arguments and outputs, where each array costs a call its handling whatever its size (38 of a
         MuJoCo Warp data's 185 on the built-in tasks)."""
         self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
+        self._ahead: list[tuple[Callable[..., Any], tuple]] = []
+        """The programs the first tick runs, each with arguments of that tick's types (`compile_ahead`)."""
         if streams:
             self._split(buckets, sizes, jax.tree_util.tree_flatten_with_path(data)[0])
             self._extra_leaves = jax.tree.leaves(_stable(extra, self._split_extra_types(extra, inputs), p))
             self._data_leaves = None  # unpacked from the words when `data` is read, as after every split tick
+        else:
+            self._ahead = [(self._tick, (self._model_leaves, self._table_leaves, self._data_leaves,
+                                         self._extra_leaves, *flags[:3], inputs, flags[3]))]
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
@@ -442,10 +449,12 @@ class Engine:
         flags = jax.ShapeDtypeStruct((4, sum(a.size for a in self.arrays)), jnp.int32,
                                      sharding=self.placement.replicated)  # as `_packed_flags` puts them
         strong = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in jax.tree.leaves(extra)]  # as `_stable` gives them
-        found, before = jax.eval_shape(self._before, self._table_leaves, self._words, strong, flags, inputs)
+        first = (self._table_leaves, self._words, strong, flags, inputs)
+        found, before = jax.eval_shape(self._before, *first)
         outboxes = [jax.ShapeDtypeStruct(w.shape, w.dtype) for w in self._words]  # views of Warp's arrays
-        found, _, _ = jax.eval_shape(self._after, self._table_leaves, outboxes, found, flags,
-                                     tuple(b[0] for b in before))
+        second = (self._table_leaves, outboxes, found, flags, tuple(b[0] for b in before))
+        found, _, _ = jax.eval_shape(self._after, *second)
+        self._ahead = [(self._before, first), (self._after, second)]
         return jax.tree.unflatten(self._extra_def, found)
 
     def _unpacked(self, words: Sequence[jax.Array]) -> list[jax.Array]:
@@ -757,10 +766,37 @@ def make_engine(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hook
                 example_inputs: Sequence[Tree] | None = None, placement: Placement | None = None,
                 graph_mode: object | None = None, streams: bool = False,
                 per_program: int | None = None) -> Engine | EngineGroups:
-    """One `Engine` for up to `per_program` buckets (`PROGRAM_BUCKETS` when None), else `EngineGroups`."""
+    """One `Engine` for up to `per_program` buckets (`PROGRAM_BUCKETS` when None), else `EngineGroups`; either
+    with the programs of its first tick compiled (`compile_ahead`)."""
     limit = PROGRAM_BUCKETS if per_program is None else int(per_program)
     if limit < 1:
         raise ValueError(f"backend.program_buckets must be at least 1, got {limit}")
     if len(buckets) <= limit:
-        return Engine(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams)
-    return EngineGroups(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams, limit)
+        engine = Engine(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams)
+    else:
+        engine = EngineGroups(buckets, sizes, impl, hooks, example_inputs, placement, graph_mode, streams, limit)
+    compile_ahead(engine.engines if isinstance(engine, EngineGroups) else [engine])
+    return engine
+
+
+def compile_ahead(engines: Sequence[Engine], threads: int | None = None) -> None:
+    """Compile the programs of every engine's first tick (`Engine._ahead`) at once, on up to `threads` threads (the
+    machine's cores when None): each is lowered here, in turn, and compiled by XLA on a thread of its own, so that
+    the groups of a suite (`EngineGroups`) compile side by side; their first tick then finds them compiled (JAX
+    keeps what `Lowered.compile` made for the jitted call of the same arguments' types).
+
+    Why: a first tick compiled its groups' programs one after another, each when its group's turn came: 58 of the
+    91 s of the protocol's first tick on streams on an H200 (2026-12-03, 9 groups, 18 programs, stack samples),
+    on a host of 16 cores. Arguments of other types than those given here (a backend's inputs that differ from its
+    example) compile again at the first tick, as they would have without this."""
+    lowered = [jitted.lower(*args) for engine in engines for jitted, args in engine._ahead]
+    for engine in engines:
+        engine._ahead = []  # its arrays (the jitted tick's data) are donated by the first tick
+    if not lowered:
+        return
+    start = time.perf_counter()
+    workers = max(1, min(len(lowered), threads or os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda program: program.compile(), lowered))
+    log.info("mjx backend: %d program(s) of the first tick compiled on %d thread(s) (%.1f s)", len(lowered),
+             workers, time.perf_counter() - start)
