@@ -17,7 +17,11 @@ Stable types. MJX's `make_data` mixes weak and strong types and a few dtypes tha
 its arrays are not committed to a device while a jitted call's outputs are; feeding a tick's output back would
 then compile the tick a second time. `Engine` casts the initial state to the exact types one tick returns (read
 with `jax.eval_shape`, no compilation) and commits it, so the state's types are a fixed point from the first
-call on (`Engine.compilations()` stays 1).
+call on (`Engine.compilations()` stays 1). Split (`streams`), the data keeps `make_data`'s types, which are the
+lanes' (checked against Warp's arrays), and only the extra state is cast, to the types the two halves return.
+
+Compiled ahead. `make_engine` compiles the programs the first tick will run (`compile_ahead`), every group's on
+threads side by side, from arguments of exactly the first tick's types, so that the tick finds them compiled.
 """
 
 from __future__ import annotations
@@ -439,7 +443,7 @@ class Engine:
     def _split_extra_types(self, extra: tuple[Tree, ...], inputs: tuple[Tree, ...]) -> tuple[Tree, ...]:
         """The types of the extra state after a split tick from `extra` (`jax.eval_shape` of both halves, no
         compilation), so that its types are a fixed point from the first call on, as `_stable` makes them for the
-        jitted tick.
+        jitted tick; both halves, with the arguments traced, are kept for `compile_ahead` (`_ahead`).
 
         Why not the whole tick's `eval_shape`: under `streams` the data's types are the lanes' words', and tracing
         the physics and the backend's refresh (a whole forward) for the extra state's types alone took some 56 s of
