@@ -784,10 +784,12 @@ def make_engine(buckets: Sequence[Bucket], sizes: Sequence[int], impl: str, hook
 
 
 def compile_ahead(engines: Sequence[Engine], threads: int | None = None) -> None:
-    """Compile the programs of every engine's first tick (`Engine._ahead`) at once, on up to `threads` threads (the
-    machine's cores when None): each is lowered here, in turn, and compiled by XLA on a thread of its own, so that
-    the groups of a suite (`EngineGroups`) compile side by side; their first tick then finds them compiled (JAX
-    keeps what `Lowered.compile` made for the jitted call of the same arguments' types).
+    """Compile the programs of every engine's first tick (`Engine._ahead`) at once, on up to `threads` threads
+    (when None: the machine's cores where the engines run on GPUs, one on a CPU): each is lowered here, in turn,
+    and compiled by XLA on a thread of its own, so that the groups of a suite (`EngineGroups`) compile side by side;
+    their first tick then finds them compiled (JAX keeps what `Lowered.compile` made for the jitted call of the same
+    arguments' types). On a CPU one at a time: there XLA's compile of a real task's jitted tick (`impl=jax`) takes
+    gigabytes, and the 2-core CI machine gained nothing from two threads.
 
     Why: a first tick compiled its groups' programs one after another, each when its group's turn came: 58 of the
     91 s of the protocol's first tick on streams on an H200 (2026-12-03, 9 groups, 18 programs, stack samples),
@@ -799,7 +801,9 @@ def compile_ahead(engines: Sequence[Engine], threads: int | None = None) -> None
     if not lowered:
         return
     start = time.perf_counter()
-    workers = max(1, min(len(lowered), threads or os.cpu_count() or 1))
+    if threads is None:
+        threads = (os.cpu_count() or 1) if engines[0].placement.on_gpu else 1
+    workers = max(1, min(len(lowered), threads))
     with ThreadPoolExecutor(workers) as pool:
         list(pool.map(lambda program: program.compile(), lowered))
     log.info("mjx backend: %d program(s) of the first tick compiled on %d thread(s) (%.1f s)", len(lowered),
