@@ -379,15 +379,17 @@ class Engine:
         tick's arguments and outputs, where each array costs a call its handling whatever its size (38 of a
         MuJoCo Warp data's 185 on the built-in tasks)."""
         self._data_leaves = [x for k, x in enumerate(leaves) if k not in self._data_empty]
-        self._ahead: list[tuple[Callable[..., Any], tuple]] = []
-        """The programs the first tick runs, each with arguments of that tick's types (`compile_ahead`)."""
+        ahead: list[tuple[Callable[..., Any], tuple]]
         if streams:
             self._split(buckets, sizes, jax.tree_util.tree_flatten_with_path(data)[0])
-            self._extra_leaves = jax.tree.leaves(_stable(extra, self._split_extra_types(extra, inputs), p))
+            types, ahead = self._split_extra_types(extra, inputs)
+            self._extra_leaves = jax.tree.leaves(_stable(extra, types, p))
             self._data_leaves = None  # unpacked from the words when `data` is read, as after every split tick
         else:
-            self._ahead = [(self._tick, (self._model_leaves, self._table_leaves, self._data_leaves,
-                                         self._extra_leaves, *flags[:3], inputs, flags[3]))]
+            ahead = [(self._tick, (self._model_leaves, self._table_leaves, self._data_leaves, self._extra_leaves,
+                                   *flags[:3], inputs, flags[3]))]
+        self._ahead = ahead
+        """The programs the first tick runs, each with arguments of that tick's types (`compile_ahead`)."""
         self._data: tuple[Tree, ...] | None = None
         self._graphs = str(getattr(graph_mode, "name", "warp")).lower()  # None is MJX's default, `warp`
         self._ticks = 0
@@ -440,10 +442,11 @@ class Engine:
                               in_shardings=shardings, out_shardings=p.batched)
         self._unpack = jax.jit(lambda words: [x for x in self._unpacked(words) if x.size])
 
-    def _split_extra_types(self, extra: tuple[Tree, ...], inputs: tuple[Tree, ...]) -> tuple[Tree, ...]:
+    def _split_extra_types(self, extra: tuple[Tree, ...], inputs: tuple[Tree, ...]
+                           ) -> tuple[tuple[Tree, ...], list[tuple[Callable[..., Any], tuple]]]:
         """The types of the extra state after a split tick from `extra` (`jax.eval_shape` of both halves, no
         compilation), so that its types are a fixed point from the first call on, as `_stable` makes them for the
-        jitted tick; both halves, with the arguments traced, are kept for `compile_ahead` (`_ahead`).
+        jitted tick; and both halves with the arguments they were traced with (`_ahead`, for `compile_ahead`).
 
         Why not the whole tick's `eval_shape`: under `streams` the data's types are the lanes' words', and tracing
         the physics and the backend's refresh (a whole forward) for the extra state's types alone took some 56 s of
@@ -458,8 +461,7 @@ class Engine:
         outboxes = [jax.ShapeDtypeStruct(w.shape, w.dtype) for w in self._words]  # views of Warp's arrays
         second = (self._table_leaves, outboxes, found, flags, tuple(b[0] for b in before))
         found, _, _ = jax.eval_shape(self._after, *second)
-        self._ahead = [(self._before, first), (self._after, second)]
-        return jax.tree.unflatten(self._extra_def, found)
+        return jax.tree.unflatten(self._extra_def, found), [(self._before, first), (self._after, second)]
 
     def _unpacked(self, words: Sequence[jax.Array]) -> list[jax.Array]:
         """The data's leaves (`_split_leaves` filled in) from each bucket's words."""

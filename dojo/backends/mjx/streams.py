@@ -67,11 +67,15 @@ Copy = tuple[Any, Any, int, int, int]
 """`wp.copy(dest, src, dest_offset, src_offset, count)`'s arguments, on flat views of 32-bit words (`_words`)."""
 
 
+def _scalar_type(array: Any) -> Any:
+    """The Warp scalar type `array`'s elements are made of (float32 for a vec3 or a mat33)."""
+    return getattr(array.dtype, "_wp_scalar_type_", array.dtype)
+
+
 def _word_count(wp: Any, array: Any) -> int | None:
     """How many 32-bit words contiguous Warp `array` holds, if its elements are made of 32-bit scalars (None
     otherwise)."""
-    scalar = getattr(array.dtype, "_wp_scalar_type_", array.dtype)
-    if wp.types.type_size_in_bytes(scalar) != 4 or not array.is_contiguous:
+    if wp.types.type_size_in_bytes(_scalar_type(array)) != 4 or not array.is_contiguous:
         return None
     return array.size * wp.types.type_size_in_bytes(array.dtype) // 4
 
@@ -462,10 +466,9 @@ class StreamEngine:
         if differ:  # a leaf the lane cannot return would stay at its first value in the engine's data
             raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in layout for "
                              f"{differ}; a lane cannot return them")
-        typed = {name: np.dtype(wp.dtype_to_numpy(getattr(array.dtype, "_wp_scalar_type_", array.dtype)))
+        kinds = {name: (np.dtype(leaves[name][1]), np.dtype(wp.dtype_to_numpy(_scalar_type(array))))
                  for name, array in arrays.items() if array is not None}
-        retyped = [f"{name} ({np.dtype(leaves[name][1])} in MJX, {kind} in Warp)" for name, kind in typed.items()
-                   if np.dtype(leaves[name][1]) != kind]
+        retyped = [f"{name} ({mjx} in MJX, {warp} in Warp)" for name, (mjx, warp) in kinds.items() if mjx != warp]
         if retyped:  # the halves would read the lane's bits as numbers of another kind
             raise ValueError(f"bucket {lane.bucket.key}: MJX's data and MuJoCo Warp's differ in element type for "
                              f"{', '.join(retyped)}; a lane cannot return them")
