@@ -272,8 +272,8 @@ def test_the_halves_take_one_array_a_bucket_and_name_the_model_fields_they_were_
 
 
 def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
-    """On a GPU the engine steps once before it captures its graphs (a capture cannot load modules); the first
-    tick must still start from the initial state."""
+    """On a GPU with a CUDA driver older than 12.3 the engine steps once before it captures its graphs (such a
+    capture cannot load modules); the first tick must still start from the initial state."""
     import warp as wp
 
     from dojo.backends.mjx.batch import STATE_FIELDS
@@ -293,6 +293,33 @@ def test_loading_the_kernels_leaves_the_state_as_it_was(buckets) -> None:
     for a, b in zip(plain.lanes, warmed.lanes):
         np.testing.assert_array_equal(a.data.qpos.numpy(), b.data.qpos.numpy())
         np.testing.assert_array_equal(a.data.qvel.numpy(), b.data.qvel.numpy())
+
+
+@pytest.mark.parametrize(("driver", "loads"), [(None, False), ((12, 2), False), ((11, 8), False), ((12, 3), True),
+                                             ((13, 0), True)])
+def test_a_lane_captures_without_a_warm_up_step_where_the_driver_loads_modules_in_a_capture(monkeypatch, driver,
+                                                                                            loads) -> None:
+    import warp as wp
+
+    from dojo.backends.mjx.streams import capture_loads_modules
+
+    monkeypatch.setattr(wp, "get_cuda_driver_version", lambda: driver)
+    assert capture_loads_modules(wp) is loads
+
+
+def test_closing_the_backend_waits_for_the_lanes_a_tick_left_running(buckets, monkeypatch) -> None:
+    """A run interrupted between a tick's launch and its end still has lanes running; `close` (the run's
+    `finally`) waits for every group's before the engine is let go."""
+    from dojo.backends.mjx.backend import MjxBackend
+    from dojo.backends.mjx.streams import StreamEngine
+
+    groups = make_engine(buckets, [B] * len(buckets), "warp", streams=True, per_program=1)
+    waited = []
+    monkeypatch.setattr(StreamEngine, "synchronize", lambda engine: waited.append(engine))
+    backend = MjxBackend.__new__(MjxBackend)
+    backend._engine, backend._renderers = groups, []
+    backend.close()
+    assert waited == [engine._physics.engine for engine in groups.engines]
 
 
 def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -> None:

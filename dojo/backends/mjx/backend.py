@@ -570,6 +570,10 @@ class MjxBackend(Backend):
                 renderer.use_buffers(buffers)
 
     def close(self) -> None:
+        """Let the cameras go, and wait for the physics a tick left running (`Engine.wait_for_lanes`): the run's
+        `finally` calls this, also when it was interrupted mid-tick."""
+        if self._engine is not None:
+            self._engine.wait_for_lanes()
         for renderer in self._renderers:
             renderer.close()
         self._renderers = []

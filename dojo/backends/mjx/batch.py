@@ -658,6 +658,15 @@ class Engine:
 
         return finish
 
+    def wait_for_lanes(self) -> None:
+        """With `streams`, wait for lanes that a tick launched and nothing finished (a run interrupted between
+        `start_tick` and its end, as `EngineGroups.tick` can be): their copies read the tick's JAX buffers and write
+        the lanes' outboxes, so the engine is not let go while they run. Why: an interrupted protocol run on an
+        H200 died in its teardown (2026-12-03, `terminate called after throwing an instance of '7'`), after its
+        results were stored."""
+        if self._physics is not None:
+            self._physics.engine.synchronize()
+
     def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
         """With `streams`, each lane's tick on its own (`StreamEngine.lane_ms`: tasks, environments, median ms of
         `ticks`); without, [] (the jitted tick has no lanes)."""
@@ -754,6 +763,11 @@ class EngineGroups:
                                   None if steps is None else steps[a:b])
                 for engine, (a, b) in zip(self.engines, self._cuts)]
         return tuple(out for end in ends for out in end())
+
+    def wait_for_lanes(self) -> None:
+        """`Engine.wait_for_lanes` of every group."""
+        for engine in self.engines:
+            engine.wait_for_lanes()
 
     def overflows(self) -> dict[str, dict[str, int]]:
         """Every group's `Engine.overflows`, in one map (bucket keys are unique across groups)."""

@@ -232,10 +232,24 @@ def _capture(wp: Any, mjw: Any, stream: Any, model: Any, data: Any, program: _Pr
     return capture.graph
 
 
+CAPTURE_LOADS_FROM = (12, 3)
+"""The CUDA driver from which a stream capture may load modules (Warp's `capture_begin` relies on it too)."""
+
+
+def capture_loads_modules(wp: Any) -> bool:
+    """Whether this machine's CUDA driver loads (and on a cold cache compiles) Warp modules inside a graph capture,
+    so that a lane captures straight away, as MuJoCo Warp's own viewer does; on older drivers `_load_kernels` runs
+    first. Why skip it where it can be skipped: it is one eager physics step per lane, each of its hundred-odd
+    launches a Python call, and it took 20 of the 144 s the 141 lanes of the protocol took to build on an H200
+    (2026-12-03, stack samples)."""
+    driver = wp.get_cuda_driver_version()
+    return driver is not None and tuple(driver) >= CAPTURE_LOADS_FROM
+
+
 def _load_kernels(wp: Any, mjw: Any, model: Any, data: Any, program: _Program) -> None:
     """One physics step, and where `program` ends its tick with restores and a refresh those kernels too, so that
-    every kernel the graphs will hold is loaded (compiled on a cold cache: a capture cannot load modules), with
-    the state put back afterwards: the first tick starts from the initial state."""
+    every kernel the graphs will hold is loaded (compiled on a cold cache: a capture on a CUDA driver older than
+    12.3 cannot load modules), with the state put back afterwards: the first tick starts from the initial state."""
     kept = {name: wp.clone(getattr(data, name)) for name in STATE_FIELDS}
     mjw.step(model, data)
     if program.restores:
@@ -447,7 +461,8 @@ class StreamEngine:
                 with wp.ScopedStream(lane.stream):
                     if lane.sources:
                         wp.copy(data.ctrl, lane.sources[0])
-                    _load_kernels(wp, mjw, model, data, lane.programs[0])
+                    if not capture_loads_modules(wp):
+                        _load_kernels(wp, mjw, model, data, lane.programs[0])
                     lane.graphs = [_capture(wp, mjw, lane.stream, model, data, program, bucket.n_substeps)
                                    for program in lane.programs]
             self.lanes.append(lane)
