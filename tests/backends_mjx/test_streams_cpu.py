@@ -334,6 +334,26 @@ def test_fields_left_unbatched_are_ones_mujoco_warps_step_never_reads(buckets) -
         assert not set(names) & warp_fields, (key, names)
 
 
+def test_overflow_is_read_for_every_lane_at_once_and_told_by_bucket(buckets) -> None:
+    """`StreamEngine.overflows` copies every lane's bits into one array and reads it once: each bucket's worlds
+    are counted from its own lane's bits, whatever the lanes' sizes, and a lane without overflow is not named."""
+    from dojo.backends.mjx.batch import CapacityOverflow
+    from dojo.backends.mjx.streams import StreamEngine
+
+    sizes = [3, 5, 2]
+    engine = StreamEngine(buckets, sizes, [[np.zeros((n, c.shape[1]), np.float32)] for n, c in
+                                           zip(sizes, _controls(buckets))], device="cpu")
+    assert engine.overflows() == {}
+    engine.lanes[1].data.overflow.assign(np.array([0, 1 << 3, 0, 1 << 3, 1 << 2], np.int32))
+    engine.lanes[2].data.overflow.assign(np.array([0, 1 << 9], np.int32))  # the solver's iterations: not a buffer
+    assert engine.overflows() == {buckets[1].key: {"broadphase pairs (naconmax)": 1, "contacts (naconmax)": 2}}
+    engine.lanes[0].data.overflow.assign(np.array([0, 0, 1 << 3], np.int32))
+    assert engine.overflows() == {buckets[0].key: {"contacts (naconmax)": 1},
+                                  buckets[1].key: {"broadphase pairs (naconmax)": 1, "contacts (naconmax)": 2}}
+    with pytest.raises(CapacityOverflow, match="contacts"):
+        engine.check_overflow()
+
+
 def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) -> None:
     """A lane's inbox and outbox hold 32-bit words end to end: ints and floats come back bit for bit, a field of
     another width is refused by name rather than copied short, and so is a data leaf whose layout in MJX differs

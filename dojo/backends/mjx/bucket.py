@@ -14,14 +14,15 @@ queued episode of the bucket is then a change of one integer, never a new shape,
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import os
 import typing
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import mujoco
 import numpy as np
@@ -30,7 +31,7 @@ from mujoco.mjx._src import types as mjx_types
 from dojo.compiler.plan import Plan
 
 from dojo.backends.mjx.merge_groups import GROWTH, Cluster, Unit, cluster, padding_groups, plans_of
-from dojo.backends.mjx.pad import PaddedPlan, pad_group
+from dojo.backends.mjx.pad import PaddedPlan, ParsedPlans, pad_group
 
 _HINTS = typing.get_type_hints(mjx_types.Model)
 _OPT_HINTS = typing.get_type_hints(mjx_types.Option)
@@ -180,73 +181,181 @@ def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
     return tuple(name for name in VALUE_FIELDS if differs(name))
 
 
-def compiled_models(padded: Sequence[PaddedPlan]) -> list[tuple[mujoco.MjModel, str]]:
-    """Each padded plan's model and its `structural_signature`, made on threads, in order (with each source plan's
-    own model, which `_initial_state` reads). MuJoCo's XML compiler and hashlib's hashing of large buffers let go of
-    the GIL, and they are most of `make_buckets`' time: 120 `insert_tubes` plans spent 4.1 of 7.5 s compiling on
-    the 2-core machine, where two threads compiled 2.1x as fast; on the H200 host 1,024 plans spent 2.4 s compiling
-    and 3.7 s hashing one after another (2026-11-28), before the hashing moved onto the threads."""
-    def signed(pp: PaddedPlan) -> tuple[mujoco.MjModel, str]:
-        model = mujoco.MjModel.from_xml_string(pp.xml)
-        return model, structural_signature(model)
-
-    if len(padded) < 2:
-        return [signed(pp) for pp in padded]
-    with ThreadPoolExecutor(min(len(padded), os.cpu_count() or 1)) as pool:
-        for _ in pool.map(lambda pp: pp.plan.model(), padded):
-            pass
-        return list(pool.map(signed, padded))
+def _digest(xml: str) -> bytes:
+    """The MJCF's SHA-256, by which `Compiler` remembers the signatures it has found."""
+    return hashlib.sha256(xml.encode()).digest()
 
 
-def _padded_members(plans: Sequence[Plan], name: str, every_object: bool) -> dict[str, list[Member]]:
-    """The plans padded together (pad.py) and compiled, by structural signature, in signature order."""
-    out: dict[str, list[Member]] = defaultdict(list)
-    padded = pad_group(plans, name, every_object=every_object)
-    for pp, (model, signature) in zip(padded, compiled_models(padded), strict=True):
-        qpos, qvel, ctrl = _initial_state(pp, model)
-        out[signature].append(Member(pp, model, qpos, qvel, ctrl))
-    return dict(sorted(out.items()))
+def _compiled(xml: str) -> tuple[mujoco.MjModel, str, bytes]:
+    """The model of a padded MJCF, its `structural_signature` and the MJCF's `_digest`."""
+    model = mujoco.MjModel.from_xml_string(xml)
+    return model, structural_signature(model), _digest(xml)
 
 
-def _task_members(plans: Sequence[Plan], task: str, growth: float) -> list[tuple[str, list[Member]]]:
+def _signature(xml: str) -> str:
+    """The `structural_signature` of a padded MJCF, its model dropped at once: the signature is all a pair check or
+    the split of a task's plans into units needs, and a model takes megabytes (a suite plan's textures 1.6 MB)."""
+    return structural_signature(mujoco.MjModel.from_xml_string(xml))
+
+
+Compiled = list[tuple[PaddedPlan, mujoco.MjModel]]
+"""Padded plans with their compiled models."""
+
+
+@dataclass
+class Compiling:
+    """Padded plans whose models a `Compiler` is making (`Compiler.models`)."""
+
+    padded: Sequence[PaddedPlan]
+    jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]]
+    """One job per distinct MJCF."""
+    seen: dict[bytes, str]
+    """The compiler's signatures by MJCF digest, which these join."""
+
+    def result(self) -> list[tuple[mujoco.MjModel, str]]:
+        """Each padded plan's model and signature, in order, once compiled; an MJCF repeated in `padded` gets a copy
+        of its first one's model (`mj_copyModel`), so that every member still has a model of its own."""
+        out: list[tuple[mujoco.MjModel, str]] = []
+        taken: set[str] = set()
+        for pp in self.padded:
+            model, signature, digest = self.jobs[pp.xml].result()
+            self.seen[digest] = signature
+            out.append((copy.copy(model) if pp.xml in taken else model, signature))
+            taken.add(pp.xml)
+        return out
+
+    def by_signature(self) -> dict[str, Compiled]:
+        """The padded plans with their models by structural signature, in signature order, each in the plans' order."""
+        out: dict[str, Compiled] = defaultdict(list)
+        for pp, (model, signature) in zip(self.padded, self.result(), strict=True):
+            out[signature].append((pp, model))
+        return dict(sorted(out.items()))
+
+
+class Compiler:
+    """What one `make_buckets` call compiles: padded plans on a pool of threads, each distinct MJCF once, and the
+    plans' own models (`Plan.model`, which `_initial_state` reads) on a thread beside it; with the plans parsed once
+    for all their paddings (`parsed`). A context manager: leaving it stops its threads.
+
+    Threads: MuJoCo's XML compiler and hashlib's hashing of large buffers let go of the GIL, and they are most of
+    `make_buckets`' time: 120 `insert_tubes` plans spent 4.1 of 7.5 s compiling on the 2-core machine, where two
+    threads compiled 2.1x as fast; on the H200 host 1,024 plans spent 2.4 s compiling and 3.7 s hashing one after
+    another (2026-11-28), before the hashing moved onto the threads. One pool serves the whole call and the caller
+    pads the next plans while it compiles: with a pool per padded group, the random setting's groups (mostly of one
+    plan: 326 of the 505 of the suite's merge) compiled on the calling thread, and nothing was padded meanwhile.
+    The plans' own models compile on a thread of their own because `Plan.model` is a `functools.cached_property`,
+    whose lock (Python 3.11) is one for every plan: they compile one at a time however many threads ask.
+
+    Once: of the 3,817 padded MJCF that the suite's merge compiled (1,150 plans of seed 0, 2026-12-03), 388
+    repeated one compiled earlier in the same call: plans that padding makes identical, and pair checks
+    (`_one_structure`) asking about a plan padded as its unit already was. A repeat within one `models` call gets a
+    copy of the first's model; `signatures` compiles only MJCF whose signature the call has not found yet (kept by
+    digest: a few dozen bytes an MJCF)."""
+
+    def __init__(self, plans: Sequence[Plan]) -> None:
+        self.parsed = ParsedPlans()
+        self._signatures: dict[bytes, str] = {}
+        self._pool = ThreadPoolExecutor(os.cpu_count() or 1)
+        self._sources = ThreadPoolExecutor(1)
+        for plan in plans:
+            self._sources.submit(plan.model)
+
+    def __enter__(self) -> Compiler:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._sources.shutdown(cancel_futures=True)
+        self._pool.shutdown(cancel_futures=True)
+
+    def models(self, padded: Sequence[PaddedPlan]) -> Compiling:
+        """Start compiling the padded plans' models."""
+        jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]] = {}
+        for pp in padded:
+            if pp.xml not in jobs:
+                jobs[pp.xml] = self._pool.submit(_compiled, pp.xml)
+        return Compiling(padded, jobs, self._signatures)
+
+    def signatures(self, padded: Sequence[PaddedPlan]) -> Callable[[], list[str]]:
+        """Start finding the padded plans' structural signatures; the function returned waits for them, in order."""
+        digests = [_digest(pp.xml) for pp in padded]
+        jobs: dict[bytes, Future[str]] = {}
+        for pp, digest in zip(padded, digests):
+            if digest not in self._signatures and digest not in jobs:
+                jobs[digest] = self._pool.submit(_signature, pp.xml)
+
+        def wait() -> list[str]:
+            for digest, job in jobs.items():
+                self._signatures[digest] = job.result()
+            return [self._signatures[digest] for digest in digests]
+
+        return wait
+
+
+def _members(compiled: Compiled) -> list[Member]:
+    """The padded plans as members: their models and initial states in the padded layout."""
+    return [Member(pp, model, *_initial_state(pp, model)) for pp, model in compiled]
+
+
+def _task_groups(plans: Sequence[Plan], task: str, growth: float, compiler: Compiler) -> list[Compiling]:
     """One task's plans (of one setting and sub-steps) padded in groups whose union stays within `1 + growth` of
-    their largest plan (`merge_groups.padding_groups`), as (signature, members); groups that come out with one
-    structure share its bucket."""
-    return [item for group in padding_groups(plans, growth)
-            for item in _padded_members(group, task, every_object=False).items()]
+    their largest plan (`merge_groups.padding_groups`), each group compiling; plans of a group that come out with
+    one structure share its bucket."""
+    return [compiler.models(pad_group(group, task, parsed=compiler.parsed))
+            for group in padding_groups(plans, growth, compiler.parsed)]
 
 
-def _one_structure(a: Cluster, b: Cluster, robot: str) -> bool:
+def _by_structure(plans: Sequence[Plan], signatures: Sequence[str]) -> list[list[Plan]]:
+    """The plans by signature, in signature order, each in the plans' order."""
+    out: dict[str, list[Plan]] = defaultdict(list)
+    for plan, signature in zip(plans, signatures, strict=True):
+        out[signature].append(plan)
+    return [out[signature] for signature in sorted(out)]
+
+
+def _unit_groups(by_task: dict[str, list[Plan]], robot: str, growth: float,
+                 compiler: Compiler) -> list[tuple[str, list[Plan], Compiling]]:
+    """The plans of each bucket `merge=False` would make (a task's plans padded alone, by structure), padded again
+    with every object a slot and compiling, as (task, plans, compiling): every task's groups are padded and sent to
+    the compiler before any is waited for."""
+    padded = [(task, group, compiler.signatures(pad_group(group, task, parsed=compiler.parsed)))
+              for task in sorted(by_task) for group in padding_groups(by_task[task], growth, compiler.parsed)]
+    return [(task, alike, compiler.models(pad_group(alike, robot, every_object=True, parsed=compiler.parsed)))
+            for task, group, signatures in padded for alike in _by_structure(group, signatures())]
+
+
+def _one_structure(a: Cluster, b: Cluster, robot: str, compiler: Compiler) -> bool:
     """Whether two clusters' plans, padded together, would compile to one structure, asked of one plan of each: what
     splits plans padded together lies outside the slots (skybox, options, equality constraints), where a cluster's
     plans agree already, and every plan padded together gets the same slots."""
-    padded = pad_group([a[0].plans[0], b[0].plans[0]], robot, every_object=True)
-    return len({structural_signature(mujoco.MjModel.from_xml_string(pp.xml)) for pp in padded}) == 1
+    padded = pad_group([a[0].plans[0], b[0].plans[0]], robot, every_object=True, parsed=compiler.parsed)
+    return len(set(compiler.signatures(padded)())) == 1
 
 
-def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float) -> list[tuple[str, list[Member]]]:
+def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float,
+            compiler: Compiler) -> list[tuple[str, list[Member]]]:
     """The members of one robot's (setting, sub-steps) plans as (signature, members), merged across tasks where
     `merge_groups.cluster` finds it cheap. Its units are the buckets `merge=False` would make (a task's plans
     padded alone, by structure), each padded again with every object a slot to count what its objects cost; so a
     merge never makes more buckets than `merge=False`, and a cluster of one unit is that bucket, renamed."""
     units: list[Unit] = []
-    members_of: dict[str, list[Member]] = {}
-    signatures: dict[str, str] = {}
-    for task in sorted(by_task):
-        for _, alike in _task_members(by_task[task], task, growth):
-            # Named by content (its least plan hash), not by its place in the plans' order: `cluster` breaks ties
-            # by these keys, so that the same plans in another order give the same clusters.
-            first = min(m.plan.hash for m in alike)
-            for signature, members in _padded_members([m.plan for m in alike], robot, every_object=True).items():
-                key = f"{task}:{first[:16]}:{signature[:16]}"
-                units.append(Unit.measure(key, [m.plan for m in members], members[0].padded, members[0].model))
-                members_of[key], signatures[key] = members, signature
+    unit_of: dict[str, tuple[str, Compiled]] = {}
+    for task, alike, compiling in _unit_groups(by_task, robot, growth, compiler):
+        # Named by content (its least plan hash), not by its place in the plans' order: `cluster` breaks ties
+        # by these keys, so that the same plans in another order give the same clusters.
+        first = min(plan.hash for plan in alike)
+        for signature, compiled in compiling.by_signature().items():
+            key = f"{task}:{first[:16]}:{signature[:16]}"
+            units.append(Unit.measure(key, [pp.plan for pp, _ in compiled], *compiled[0]))
+            unit_of[key] = signature, compiled
+    clusters = cluster(units, growth, lambda a, b: _one_structure(a, b, robot, compiler))
+    padded = [compiler.models(pad_group(plans_of(c), robot, every_object=True, parsed=compiler.parsed))
+              if len(c) > 1 else unit_of[c[0].key] for c in clusters]
     out: list[tuple[str, list[Member]]] = []
-    for units_merged in cluster(units, growth, lambda a, b: _one_structure(a, b, robot)):
-        if len(units_merged) == 1:
-            out.append((signatures[units_merged[0].key], members_of[units_merged[0].key]))
+    for found in padded:
+        if isinstance(found, Compiling):
+            out.extend((signature, _members(compiled)) for signature, compiled in found.by_signature().items())
         else:
-            out.extend(_padded_members(plans_of(units_merged), robot, every_object=True).items())
+            out.append((found[0], _members(found[1])))
     return out
 
 
@@ -267,11 +376,15 @@ def make_buckets(plans: Sequence[Plan], merge: bool = False, growth: float = GRO
     for plan in plans:
         by_group[plan.embodiment if merge else plan.task, plan.setting, plan.n_substeps][plan.task].append(plan)
     groups: dict[str, list[Member]] = defaultdict(list)
-    for (name, setting, substeps) in sorted(by_group):
+    with Compiler(plans) as compiler:
         if merge:
-            for signature, members in _merged(by_group[name, setting, substeps], name, growth):
-                groups[f"{name}:{substeps}:{signature[:16]}"] += members
+            for (name, setting, substeps) in sorted(by_group):
+                for signature, members in _merged(by_group[name, setting, substeps], name, growth, compiler):
+                    groups[f"{name}:{substeps}:{signature[:16]}"] += members
         else:
-            for signature, members in _task_members(by_group[name, setting, substeps][name], name, growth):
-                groups[f"{name}:{signature[:16]}"] += members
+            compiling = [(name, found) for (name, setting, substeps) in sorted(by_group)
+                         for found in _task_groups(by_group[name, setting, substeps][name], name, growth, compiler)]
+            for name, found in compiling:
+                for signature, compiled in found.by_signature().items():
+                    groups[f"{name}:{signature[:16]}"] += _members(compiled)
     return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]

@@ -27,7 +27,7 @@ import mujoco
 
 from dojo.compiler.plan import Plan
 
-from dojo.backends.mjx.pad import PaddedPlan, frame_key, slotted_bodies
+from dojo.backends.mjx.pad import PaddedPlan, ParsedPlans, frame_key, slotted_bodies
 
 GROWTH = 0.5
 """How much larger (in degrees of freedom and in geoms, each) a merged model may be than its largest member's own.
@@ -234,7 +234,7 @@ def cluster(units: Sequence[Unit], growth: float, one_structure: Callable[[Clust
     return sorted(alive.values(), key=_keys)
 
 
-def padding_groups(plans: Sequence[Plan], growth: float) -> list[list[Plan]]:
+def padding_groups(plans: Sequence[Plan], growth: float, parsed: ParsedPlans | None = None) -> list[list[Plan]]:
     """The plans of one task and setting split into groups to pad together, each group's padded model (the union of
     its plans' clutter slots, pad.py) within `1 + growth` of its largest plan's own, DoFs and geoms each.
 
@@ -245,10 +245,10 @@ def padding_groups(plans: Sequence[Plan], growth: float) -> list[list[Plan]]:
     holds, `pad.frame_key`), those models were 256 structures all the same. First fit, largest plans first: each
     plan joins the first group of its frame key that it fits, else starts one; plans are counted from their MJCF
     (`Unit.of_plan`), nothing is compiled.
-    Groups keep the plans' given order."""
+    Groups keep the plans' given order. `parsed`: the plans already parsed (`pad.ParsedPlans`)."""
     if not growth >= 0:  # NaN too
         raise ValueError(f"padding growth must be at least 0, got {growth}")
-    read = slotted_bodies(plans)
+    read = slotted_bodies(plans, parsed)
     units = [Unit.of_plan(plan, frame, slotted) for plan, (frame, slotted) in zip(plans, read)]
     frames = {unit.key: frame_key(frame) for unit, (frame, _) in zip(units, read)}
     groups: list[tuple[list[Unit], Union]] = []
