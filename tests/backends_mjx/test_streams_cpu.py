@@ -372,6 +372,7 @@ def test_the_exchange_moves_fields_as_words_and_refuses_other_widths(buckets) ->
     back = unpack_words(words[6:], [floats])[0]
     np.testing.assert_array_equal(np.asarray(back).view(np.uint32), np.asarray(floats).view(np.uint32))
     np.testing.assert_array_equal(np.asarray(words[:6]).view(np.int32), np.asarray(ints).reshape(-1))
+    np.testing.assert_array_equal(np.asarray(unpack_words(words, [ints])[0]), np.asarray(ints))  # words left over
     assert _words(wp, wp.zeros((2, 3), dtype=wp.mat33, device="cpu")).shape == (54,)
     with pytest.raises(ValueError, match="32-bit scalars, not .*float64"):
         _words(wp, wp.zeros(4, dtype=wp.float64, device="cpu"))

@@ -356,19 +356,42 @@ def pack_host_words(arrays: Sequence[np.ndarray], align: int = 1) -> np.ndarray:
 
 def unpack_words(words: Any, like: Sequence[Any], align: int = 1) -> list[Any]:
     """Flat float32 words laid out as `pack_words(..., align)` lays out arrays shaped like `like`, as those arrays
-    of their dtypes with their bits kept."""
+    of their dtypes with their bits kept. The words are bitcast once per element type and each such view cut into
+    every part at once (`lax.split`): the halves unpack some 150 leaves a bucket, and a slice, a bitcast and a
+    reshape per leaf, each traced through `jnp`, took 1.7 of the 7.1 s that 16 protocol buckets' engine took to
+    build on the CI machine (2026-12-03, cProfile)."""
     import jax
     import jax.numpy as jnp
 
     offsets, _ = word_offsets([words_of(a) for a in like], align)
+    sizes: list[int] = []  # words of each stretch in order, the gaps between parts and after the last included
+    index: list[int] = []  # the stretch that holds each of `like`
+    at = 0
+    for a, start in zip(like, offsets):
+        if start > at:
+            sizes.append(start - at)
+        index.append(len(sizes))
+        sizes.append(words_of(a))
+        at = start + sizes[-1]
+    if words.shape[0] > at:
+        sizes.append(words.shape[0] - at)
+    views: dict[Any, list[Any]] = {}
+
+    def stretches(dtype: Any) -> list[Any]:
+        """The stretches of the words as elements of `dtype` (a 4-byte type, or uint8: four to a word)."""
+        if dtype not in views:
+            view = words if dtype == jnp.float32 else jax.lax.bitcast_convert_type(words, dtype)
+            scale = 4 if view.ndim > 1 else 1
+            views[dtype] = jax.lax.split(view.reshape(-1), [scale * n for n in sizes])
+        return views[dtype]
+
     out = []
-    for a, at in zip(like, offsets):
-        part = words[at:at + words_of(a)]
+    for a, k in zip(like, index):
         if a.dtype.itemsize == 1:
-            part = jax.lax.bitcast_convert_type(part, jnp.uint8).reshape(-1)[:a.size].astype(a.dtype)
+            part = jax.lax.convert_element_type(stretches(jnp.uint8)[k][:a.size], a.dtype)
         else:
-            part = jax.lax.bitcast_convert_type(part, a.dtype)
-        out.append(part.reshape(a.shape))
+            part = stretches(a.dtype)[k]
+        out.append(part if part.shape == tuple(a.shape) else jax.lax.reshape(part, tuple(a.shape)))
     return out
 
 
