@@ -241,8 +241,8 @@ class Compiler:
     `make_buckets`' time: 120 `insert_tubes` plans spent 4.1 of 7.5 s compiling on the 2-core machine, where two
     threads compiled 2.1x as fast; on the H200 host 1,024 plans spent 2.4 s compiling and 3.7 s hashing one after
     another (2026-11-28), before the hashing moved onto the threads. One pool serves the whole call and the caller
-    pads the next plans while it compiles: with a pool per padded group, the random setting's groups (mostly of one
-    plan: 326 of the 505 of the suite's merge) compiled on the calling thread, and nothing was padded meanwhile.
+    pads the next plans while it compiles: with a pool per padded group, groups of one plan (326 of the 505 padded
+    in the suite's merge) compiled on the calling thread, and nothing was padded while a group compiled.
     The plans' own models compile on a thread of their own because `Plan.model` is a `functools.cached_property`,
     whose lock (Python 3.11) is one for every plan: they compile one at a time however many threads ask.
 
@@ -331,12 +331,9 @@ def _one_structure(a: Cluster, b: Cluster, robot: str, compiler: Compiler) -> bo
     return len(set(compiler.signatures(padded)())) == 1
 
 
-def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float,
-            compiler: Compiler) -> list[tuple[str, list[Member]]]:
-    """The members of one robot's (setting, sub-steps) plans as (signature, members), merged across tasks where
-    `merge_groups.cluster` finds it cheap. Its units are the buckets `merge=False` would make (a task's plans
-    padded alone, by structure), each padded again with every object a slot to count what its objects cost; so a
-    merge never makes more buckets than `merge=False`, and a cluster of one unit is that bucket, renamed."""
+def _units(by_task: dict[str, list[Plan]], robot: str, growth: float,
+           compiler: Compiler) -> tuple[list[Unit], dict[str, tuple[str, Compiled]]]:
+    """The units to cluster (`_unit_groups` by structure), and each unit's signature and padded plans by its key."""
     units: list[Unit] = []
     unit_of: dict[str, tuple[str, Compiled]] = {}
     for task, alike, compiling in _unit_groups(by_task, robot, growth, compiler):
@@ -347,15 +344,32 @@ def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float,
             key = f"{task}:{first[:16]}:{signature[:16]}"
             units.append(Unit.measure(key, [pp.plan for pp, _ in compiled], *compiled[0]))
             unit_of[key] = signature, compiled
+    return units, unit_of
+
+
+def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float,
+            compiler: Compiler) -> list[tuple[str, list[Member]]]:
+    """The members of one robot's (setting, sub-steps) plans as (signature, members), merged across tasks where
+    `merge_groups.cluster` finds it cheap. Its units are the buckets `merge=False` would make (a task's plans
+    padded alone, by structure), each padded again with every object a slot to count what its objects cost; so a
+    merge never makes more buckets than `merge=False`, and a cluster of one unit is that bucket, renamed."""
+    units, unit_of = _units(by_task, robot, growth, compiler)
     clusters = cluster(units, growth, lambda a, b: _one_structure(a, b, robot, compiler))
-    padded = [compiler.models(pad_group(plans_of(c), robot, every_object=True, parsed=compiler.parsed))
-              if len(c) > 1 else unit_of[c[0].key] for c in clusters]
+    # Only a cluster of one unit keeps its unit's models: the others' are let go before the merged clusters compile,
+    # whose models then take their memory instead of fresh pages. The suite's merge (1,150 plans, 1,039 of them in
+    # merged clusters, 2.4 MB a model) took 51.0 s keeping them, 21.7 s of it in the kernel (page faults), and
+    # 34.3 s letting go (5.4 s) on the 2-core CI machine (2026-12-03).
+    alone = {c[0].key: unit_of[c[0].key] for c in clusters if len(c) == 1}
+    del unit_of
+    merging = [compiler.models(pad_group(plans_of(c), robot, every_object=True, parsed=compiler.parsed))
+               if len(c) > 1 else None for c in clusters]
     out: list[tuple[str, list[Member]]] = []
-    for found in padded:
-        if isinstance(found, Compiling):
-            out.extend((signature, _members(compiled)) for signature, compiled in found.by_signature().items())
+    for c, compiling in zip(clusters, merging):
+        if compiling is None:
+            signature, compiled = alone[c[0].key]
+            out.append((signature, _members(compiled)))
         else:
-            out.append((found[0], _members(found[1])))
+            out.extend((signature, _members(compiled)) for signature, compiled in compiling.by_signature().items())
     return out
 
 

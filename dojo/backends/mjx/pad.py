@@ -37,7 +37,6 @@ groups by the exact structural signature, so anything this module does not equal
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import xml.etree.ElementTree as ET
 from collections import Counter
@@ -188,13 +187,23 @@ def _unioned(root: ET.Element) -> list[ET.Element]:
             and el.get("type") != "skybox"]
 
 
+def _copied(el: ET.Element) -> ET.Element:
+    """A deep copy of an MJCF element, made element by element: `copy.deepcopy` copies each element's attributes
+    through Python's `copy` module (0.44 against 0.24 ms a suite plan's tree), and padding every suite plan twice
+    (`ParsedPlans`) took 1.7 s longer with it."""
+    new = el.makeelement(el.tag, el.attrib)
+    new.text, new.tail = el.text, el.tail
+    new.extend([_copied(child) for child in el])
+    return new
+
+
 def _content(el: ET.Element) -> str:
     """What an asset element defines, without its name: its attributes and children, canonically.
 
     The layout around it is not content: `ET.tostring` writes an element's tail (the whitespace up to the next
     element), which differs with the element's place in its file, so two plans defining the same mesh, one of them
     last in its asset section, would count as different and be split into two structures."""
-    body = copy.deepcopy(el)
+    body = _copied(el)
     body.attrib.pop("name", None)
     for part in body.iter():
         part.attrib = dict(sorted(part.attrib.items()))
@@ -205,14 +214,13 @@ def _content(el: ET.Element) -> str:
 
 class ParsedPlans:
     """Plans' MJCF parsed once, with the content (`_content`) of each of their unioned assets, for every padding of
-    them in one `make_buckets` call; each padding takes a deep copy of its own to rewrite.
+    them in one `make_buckets` call; each padding takes a copy of its own to rewrite.
 
     Why: `make_buckets(merge=True)` pads a plan three to five times (with its task, as a unit, in its cluster, in
-    pair checks), and each padding parsed its MJCF again and serialised every one of its meshes, textures and
-    materials again to hash their contents: over the suite's 1,150 plans (seed 0) on the 2-core CI machine, 4,967
-    parses (6.1 s) and 133,753 serialisations (4.7 s) of the 85 s under cProfile (2026-12-03). A copy of a parsed
-    suite plan takes 0.4 ms against 2.1 ms to parse it; the 1,150 parsed trees hold about 190 MB, so one is made
-    per call and dropped with it."""
+    pair checks: 4,967 paddings of the suite's 1,150 plans of seed 0), and each padding parsed the plan's MJCF
+    again and serialised each of its meshes, textures and materials again to hash them (133,753 serialisations).
+    Padding every suite plan twice (alone and with every object a slot) took 1.6 s longer that way on the 2-core CI
+    machine (10.6 against 9.1 s, 2026-12-03). The suite's parsed trees hold about 190 MB: one is made per call."""
 
     def __init__(self) -> None:
         self._parsed: dict[str, tuple[ET.Element, list[str]]] = {}
@@ -227,7 +235,7 @@ class ParsedPlans:
 
     def root(self, plan: Plan) -> ET.Element:
         """A fresh copy of the plan's MJCF, the caller's to rewrite."""
-        return copy.deepcopy(self._entry(plan)[0])
+        return _copied(self._entry(plan)[0])
 
     def contents(self, plan: Plan) -> list[str]:
         """`_content` of each of the plan's `_unioned` assets, in their order."""
@@ -267,7 +275,7 @@ def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
         for el in _unioned(root):
             seen.setdefault((el.tag, el.get("name", "")), el)
     order = {tag: i for i, tag in enumerate(_UNIONED_ASSETS)}
-    return [copy.deepcopy(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
+    return [_copied(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
 
 
 def slotted_bodies(plans: Sequence[Plan], parsed: ParsedPlans | None = None,
@@ -359,7 +367,7 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False,
                 for el in body.iter("body"):
                     el.set("gravcomp", repr(float(el.get("gravcomp", 0.0)) or GRAVCOMP_IN_USE))
             else:
-                body = copy.deepcopy(template)
+                body = _copied(template)
                 _rename(body, slot)
                 _park(body, j)
                 padded.parked.append(slot)
@@ -386,7 +394,7 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False,
         for el in asset.iter("texture"):
             if el.get("type") == "skybox":
                 el.set("name", "skybox")
-        asset.extend(assets)  # shared by the trees, which are only serialised (copies: 1.3 s of the suite's 85 s)
+        asset.extend(assets)  # shared: the trees are only serialised (a copy a plan: 3.4 s more to pad the suite twice)
         padded.xml = ET.tostring(root, encoding="unicode")
         out.append(padded)
     return out
