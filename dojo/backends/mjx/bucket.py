@@ -198,6 +198,8 @@ def _signature(xml: str) -> str:
     return structural_signature(mujoco.MjModel.from_xml_string(xml))
 
 
+_Item = typing.TypeVar("_Item")
+
 Compiled = list[tuple[PaddedPlan, mujoco.MjModel]]
 """Padded plans with their compiled models."""
 
@@ -225,11 +227,10 @@ class Compiling:
         return out
 
     def by_signature(self) -> dict[str, Compiled]:
-        """The padded plans with their models by structural signature, in signature order, each in the plans' order."""
-        out: dict[str, Compiled] = defaultdict(list)
-        for pp, (model, signature) in zip(self.padded, self.result(), strict=True):
-            out[signature].append((pp, model))
-        return dict(sorted(out.items()))
+        """The padded plans with their models by structural signature (`_by_signature`)."""
+        found = self.result()
+        return _by_signature([(pp, model) for pp, (model, _) in zip(self.padded, found, strict=True)],
+                             [signature for _, signature in found])
 
 
 class Compiler:
@@ -304,12 +305,12 @@ def _task_groups(plans: Sequence[Plan], task: str, growth: float, compiler: Comp
             for group in padding_groups(plans, growth, compiler.parsed)]
 
 
-def _by_structure(plans: Sequence[Plan], signatures: Sequence[str]) -> list[list[Plan]]:
-    """The plans by signature, in signature order, each in the plans' order."""
-    out: dict[str, list[Plan]] = defaultdict(list)
-    for plan, signature in zip(plans, signatures, strict=True):
-        out[signature].append(plan)
-    return [out[signature] for signature in sorted(out)]
+def _by_signature(items: Sequence[_Item], signatures: Sequence[str]) -> dict[str, list[_Item]]:
+    """`items` grouped by their structural signatures, in signature order, each group in the items' order."""
+    out: dict[str, list[_Item]] = defaultdict(list)
+    for item, signature in zip(items, signatures, strict=True):
+        out[signature].append(item)
+    return dict(sorted(out.items()))
 
 
 def _unit_groups(by_task: dict[str, list[Plan]], robot: str, growth: float,
@@ -320,7 +321,7 @@ def _unit_groups(by_task: dict[str, list[Plan]], robot: str, growth: float,
     padded = [(task, group, compiler.signatures(pad_group(group, task, parsed=compiler.parsed)))
               for task in sorted(by_task) for group in padding_groups(by_task[task], growth, compiler.parsed)]
     return [(task, alike, compiler.models(pad_group(alike, robot, every_object=True, parsed=compiler.parsed)))
-            for task, group, signatures in padded for alike in _by_structure(group, signatures())]
+            for task, group, signatures in padded for alike in _by_signature(group, signatures()).values()]
 
 
 def _one_structure(a: Cluster, b: Cluster, robot: str, compiler: Compiler) -> bool:
