@@ -22,6 +22,7 @@ Needs warp-lang (any machine; MuJoCo Warp ships inside mujoco-mjx).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from typing import Any, Mapping, Sequence
@@ -84,14 +85,14 @@ def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`) that `dojo run
     backend=mjx` would give the mjx backend (`mjx_plans`), bucketed as it would (`backend.merge`,
-    `backend.merge_growth`; `dof_quantum`: their DoFs rounded up, `dof_rounding`), and the Warp modules their steps
+    `backend.merge_growth`; under `merge=auto` as a run of `num_envs` environments on a GPU decides; `dof_quantum`: their DoFs rounded up, `dof_rounding`), and the Warp modules their steps
     need; with `arch`, those modules compiled for that GPU architecture into Warp's kernel cache (`jobs` at a
     time), on this machine, GPU or not."""
     from importlib.metadata import version
 
-    from dojo.backends.mjx import merge_growth
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.dof_rounding import round_bucket
+    from dojo.backends.mjx.merge_groups import choose_merge
     from dojo.bench.sim_bench import load_plans
 
     try:
@@ -101,13 +102,17 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
                            "ships inside mujoco-mjx") from None
     backend = cfg.get("backend") or {}
     plans, elsewhere = mjx_plans(load_plans(cfg), backend)
-    merge = bool(backend.get("merge", False))
+    # as `dojo run` on a GPU without cameras (physics on streams) with `num_envs` environments would bucket them
+    groups = len({(p.task, p.setting, p.n_substeps) for p in plans})
+    requested, growth = backend.get("merge", "auto"), backend.get("merge_growth")
+    merge, growth, _ = choose_merge("auto" if requested is None else requested,
+                                    None if growth is None else float(growth), True,
+                                    min(int(cfg.get("num_envs") or len(plans)), len(plans)), groups)
     quantum = int(cfg.get("dof_quantum") or 1)
-    buckets = [round_bucket(b, quantum)
-               for b in make_buckets(plans, merge=merge, growth=merge_growth(backend.get("merge_growth")))]
+    buckets = [round_bucket(b, quantum) for b in make_buckets(plans, merge=merge, growth=growth)]
     log.info("%d plans in %d buckets", len(plans), len(buckets))
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
-            "run_on_mujoco": elsewhere, "merge": merge,
+            "run_on_mujoco": elsewhere, "merge": merge, "growth": growth if math.isfinite(growth) else "inf",
             "dof_quantum": quantum,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
             **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1))}

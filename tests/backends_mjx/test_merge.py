@@ -277,10 +277,12 @@ def test_merged_bucket_steps_like_separate_buckets_and_keeps_parked_slots_parked
 
 
 def test_the_backend_takes_its_merge_growth_from_the_config():
-    """`backend.merge_growth` (dojo/cli/config/backend/mjx.yaml): null is the module's `GROWTH`, `.inf` the full
-    union."""
+    """`backend.merge_growth` (dojo/cli/config/backend/mjx.yaml): null is the module's `GROWTH` under
+    `merge=true`, `.inf` the full union."""
+    from dojo.backends.mjx.merge_groups import choose_merge
     from dojo.backends.registry import BackendOptions, make_backend
 
     for setting, want in ((None, GROWTH), (0.5, 0.5), (math.inf, math.inf)):
         backend = make_backend("mjx", BackendOptions(settings={"merge": True, "merge_growth": setting}))
-        assert backend.merge and backend.merge_growth == want
+        assert backend.merge is True and backend.merge_growth == setting
+        assert choose_merge(backend.merge, backend.merge_growth, False, 1, 1)[:2] == (True, want)

@@ -60,9 +60,10 @@ RUNS_POLICY_RULES = True
 
 def make(options: BackendOptions) -> MjxBackend:
     """The registry's constructor (`dojo.backends.registry`): settings `impl` (`jax`, `warp`, or auto), `devices`
-    (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks),
-    `merge_growth` (how much larger than its largest plan a padded or merged model may be; null:
-    `merge_groups.GROWTH`), `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
+    (how many local devices the environments are split over, or `all`), `merge` (buckets merged across tasks:
+    true, false or auto, null: auto; `merge_groups.choose_merge`), `merge_growth` (how much larger than its largest
+    plan a padded or merged model may be; null: `merge_groups.GROWTH`, or `AUTO_GROWTH` where auto merges),
+    `graph_mode` (MJX's CUDA graph capture of Warp calls, `cache.GRAPH_MODES`; null:
     MJX's own default), `streams` (true, false or auto, null: auto; each bucket's physics on its own CUDA stream,
     under auto where `streams_may_run` and then `cache.choose_streams` allow) and
     `program_buckets` (at most this many buckets in one jitted program; null: `batch.PROGRAM_BUCKETS`).
@@ -84,6 +85,7 @@ def make(options: BackendOptions) -> MjxBackend:
     from dojo.backends.mjx.backend import MjxBackend
 
     impl = options.settings.get("impl")
+    merge, growth = options.settings.get("merge", "auto"), options.settings.get("merge_growth")
     if jax.default_backend() == "cpu":
         logging.getLogger(__name__).warning(
             "backend=mjx on a CPU: %s; backend=mujoco is the CPU backend",
@@ -92,8 +94,8 @@ def make(options: BackendOptions) -> MjxBackend:
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
-                         merge=bool(options.settings.get("merge", False)),
-                         merge_growth=merge_growth(options.settings.get("merge_growth")),
+                         merge="auto" if merge is None else merge,
+                         merge_growth=None if growth is None else float(growth),
                          graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
                          streams=streams,
                          program_buckets=options.settings.get("program_buckets"))

@@ -64,7 +64,7 @@ from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, choose_str
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
-from dojo.backends.mjx.merge_groups import GROWTH
+from dojo.backends.mjx.merge_groups import choose_merge
 from dojo.backends.mjx.observations import StepObservations
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
@@ -296,7 +296,7 @@ class MjxBackend(Backend):
     def __init__(self, impl: str | None = "jax", cache_dir: str | None = None, privileged: bool = False,
                  plan_paths: dict[str, str] | None = None, cameras: Sequence[str] = (), width: int = 640,
                  height: int = 480, depth: bool = False, devices: int | str | None = None,
-                 merge: bool = False, merge_growth: float = GROWTH,
+                 merge: bool | str = False, merge_growth: float | None = None,
                  graph_mode: str | None = DEFAULT_GRAPH_MODE, action_modes: Sequence[str] | None = None,
                  streams: bool | str = False, program_buckets: int | None = None) -> None:
         """`privileged`: observations also carry `privileged: {qpos, qvel, plan_hash, plan_path}` in the plan's own
@@ -310,6 +310,9 @@ class MjxBackend(Backend):
         where the scenes allow it and the merged model stays within `1 + merge_growth` of its largest task's own
         (DoFs and geoms; `merge_groups.GROWTH` says why), each task's program a lane of its bucket (`lanes`). The
         same bound holds where one task's plans are padded together (`merge_groups.padding_groups`), merged or not.
+        `auto`: decided at `load`, from the run's environments per task and whether the physics is on streams
+        (`merge_groups.choose_merge`). `merge_growth` None: the default of what is chosen (`GROWTH`, or
+        `AUTO_GROWTH` where auto merges).
         `graph_mode`: how MJX captures its Warp calls in CUDA graphs (`cache.GRAPH_MODES`, `cache.DEFAULT_GRAPH_MODE`;
         None: MJX's own default).
         `streams`: under `warp` on one GPU, every bucket's physics on its own CUDA stream between two jitted halves
@@ -328,7 +331,10 @@ class MjxBackend(Backend):
         self.render_config = RenderConfig(tuple(cameras), width, height, depth) if cameras else None
         self._renderers: list[CpuRenderer | BucketCameras] = []
         self.impl = choose_impl(impl)
-        self.merge, self.merge_growth = bool(merge), float(merge_growth)
+        choose_merge(merge, merge_growth, False, 0, 0)  # a bad setting fails here, before any compiling
+        self.merge, self.merge_growth = merge, merge_growth
+        self.merged = False
+        """Whether `load` merged buckets across tasks (`merge`, decided there under `auto`)."""
         self.graph_mode = graph_mode_of(graph_mode, self.impl)
         self.program_buckets = program_buckets
         log.info("mjx backend: %s%s", describe_impl(self.impl),
@@ -380,8 +386,13 @@ class MjxBackend(Backend):
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
         start = time.perf_counter()
-        self._buckets = make_buckets(list(self._known.values()), merge=self.merge,
-                                     growth=self.merge_growth)
+        groups = len({(p.task, p.setting, p.n_substeps) for p in self._known.values()})
+        self.merged, growth, why = choose_merge(self.merge, self.merge_growth, self.streams, len(plans), groups)
+        if self.merge == "auto" or self.merged:
+            log.info("mjx backend: buckets %s (backend.merge=%s)",
+                     f"merged across tasks, growth {growth:g}" if self.merged else "not merged across tasks",
+                     why if self.merge == "auto" else str(self.merge).lower())
+        self._buckets = make_buckets(list(self._known.values()), merge=self.merged, growth=growth)
         # Set-up can take minutes (a compile per bucket structure): say where it stands before each long step.
         log.info("mjx backend: %d plan(s) in %d bucket(s), largest nv %d (%.1f s); building the engine",
                  len(self._known), len(self._buckets), max(b.model.nv for b in self._buckets),

@@ -40,8 +40,50 @@ At the protocol's 1,200 environments on the split tick (`backend.streams`, H200,
 0.5 (13 buckets) 254k, 0.75 (10) 267k, 1.0 (9) 272k, 1.5 and 2.0 (7) 221k. At 1.0 later that day: 279k at 1,200,
 556k at 4,096 and 717k at 16,384, where the 29 separate buckets had run 1.43-1.49M on streams (physics only, other
 days): merging stops paying as the GPU fills. In one run at 16,384 (H200, 2026-12-02, fewer resting contacts by
-then) the 29 separate buckets on the split tick ran 1.456M and growth 1.0 974k. 0.5 stays the default growth;
-`merge` itself is off by default."""
+then) the 29 separate buckets on the split tick ran 1.456M and growth 1.0 974k. 0.5 stays the growth of
+`merge=true` and of the padding of separate buckets; `merge=auto` (the default) merges where `choose_merge` finds
+few environments per task, at `AUTO_GROWTH`."""
+
+AUTO_BELOW = 64
+"""`backend.merge=auto` merges where the run has fewer environments than this per (task, setting), on streams.
+Why: a lane (`streams`) costs about the same per physics sub-step up to a few hundred worlds, so with few
+environments per bucket the lanes' count sets the tick and merging pays; with many, the merged models' parked
+slots do. Measured on one H200 (2026-12-03, MuJoCo Warp, split tick, Warp kernels cached; README, speed), the
+bench's 84 plans in 47 separate buckets against 14 merged at growth 1.0 (`dojo bench sim backend.impl=warp
+num_envs=N modes=[streams,merged_streams] backend.merge_growth=1.0 steps=20`): 1,200 environments 288.8k and
+360.8k physics steps/s (1.25x merged), 4,096 722.7k and 735.6k (1.02x); at 16,384 the separate buckets ran 1.48M
+and 9 merged at growth 2.0 600k (0.41x). The protocol itself (`dojo run`, 850 plans, 1,200 environments, 25 per
+task and setting) ran 3,270-3,320 interactions/s merged at growth 1.0 (46 buckets) against 1,838-1,903 in its 141
+separate buckets (earlier that day, another H200 machine)."""
+
+AUTO_GROWTH = 1.0
+"""The growth `backend.merge=auto` merges with where `merge_growth` is not set: the fastest measured on the
+protocol's own run (H200, 2026-12-03, `dojo run backend=mjx policy=zero suite=robodojo_sim episodes=50 seeds=[0]
+num_envs=1200 backend.merge=true backend.merge_growth=G`): 3,270-3,320 interactions/s at 1.0 (46 buckets, load
+158 s), 2,705 at 2.0 (27 buckets, load 157 s), 2,911 at 0.5 (70 buckets, load 175 s, 2026-12-02)."""
+
+
+def choose_merge(requested: bool | str, growth: float | None, streams: bool, environments: int, groups: int
+                 ) -> tuple[bool, float, str]:
+    """(whether the backend merges buckets across tasks, the growth it pads and merges with, why, for the log).
+
+    `requested`: `backend.merge`, true, false or `auto`; `growth`: `backend.merge_growth`, None where unset (then
+    `GROWTH`, or `AUTO_GROWTH` where auto merges); `streams`: whether the physics runs on streams (auto merges only
+    there: that is where it was measured); `environments`: the run's slots; `groups`: its plans' distinct (task,
+    setting, sub-steps), the fewest buckets `merge=False` can make, so `environments / groups` is the most
+    environments a separate bucket can average."""
+    if requested not in (True, False, "auto"):
+        raise ValueError(f"backend.merge takes true, false or auto, not {requested!r}")
+    plain = GROWTH if growth is None else float(growth)
+    if requested != "auto":
+        return bool(requested), plain, "as set"
+    if not streams:
+        return False, plain, "auto: the physics is not on streams"
+    per_group = environments / max(groups, 1)
+    if per_group >= AUTO_BELOW:
+        return False, plain, f"auto: {per_group:.0f} environments per task and setting, {AUTO_BELOW} or more"
+    return (True, AUTO_GROWTH if growth is None else float(growth),
+            f"auto: {per_group:.1f} environments per task and setting, fewer than {AUTO_BELOW}, on streams")
 
 
 @dataclass(frozen=True)
