@@ -12,9 +12,9 @@ from dojo.backends.mjx.merge_groups import AUTO_BELOW, AUTO_GROWTH, GROWTH, choo
 
 
 def test_auto_merges_on_streams_where_few_environments_share_a_task_and_setting() -> None:
-    # the protocol: 850 environments over 17 tasks x 2 settings, physics on streams
-    merged, growth, why = choose_merge("auto", None, True, 850, 34)
-    assert (merged, growth) == (True, AUTO_GROWTH) and "25.0 environments per task and setting" in why
+    # the protocol's run on a GPU: 850 environments in 20 (task, setting) groups, physics on streams
+    merged, growth, why = choose_merge("auto", None, True, 850, 20)
+    assert (merged, growth) == (True, AUTO_GROWTH) and "42.5 environments per task and setting" in why
     assert choose_merge("auto", None, True, AUTO_BELOW - 1, 1)[:2] == (True, AUTO_GROWTH)
     assert choose_merge("auto", None, True, AUTO_BELOW, 1)[:2] == (False, GROWTH)  # the bound itself: not merged
     assert choose_merge("auto", None, True, 16384, 42)[:2] == (False, GROWTH)  # a full GPU: separate buckets

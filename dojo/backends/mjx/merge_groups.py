@@ -52,7 +52,7 @@ slots do. Measured on one H200 (2026-12-03, MuJoCo Warp, split tick, Warp kernel
 bench's 84 plans in 47 separate buckets against 14 merged at growth 1.0 (`dojo bench sim backend.impl=warp
 num_envs=N modes=[streams,merged_streams] backend.merge_growth=1.0 steps=20`): 1,200 environments 288.8k and
 360.8k physics steps/s (1.25x merged), 4,096 722.7k and 735.6k (1.02x); at 16,384 the separate buckets ran 1.48M
-and 9 merged at growth 2.0 600k (0.41x). The protocol itself (`dojo run`, 850 plans, 1,200 environments, 25 per
+and 9 merged at growth 2.0 600k (0.41x). The protocol itself (`dojo run`, 850 plans, 1,200 environments, 42.5 per
 task and setting) ran 3,270-3,320 interactions/s merged at growth 1.0 (46 buckets) against 1,838-1,903 in its 141
 separate buckets (earlier that day, another H200 machine)."""
 
