@@ -73,9 +73,11 @@ def _run(queue: list[PlannedEpisode], policy: dict[str, Any], on_device: str, nu
          seen: list[tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[dict[tuple, tuple], Any, int]:
     """`dojo run`'s loop on the mjx backend (`backend.streams` as given), which knows the plans of `known`
     (default: the queue's): each episode's result row (by key), the backend after the run and how many chunks the
-    policy was asked for. With `seen` the backend is privileged and the list gets each observation's state."""
+    policy was asked for. With `seen` the backend is privileged and the list gets each observation's state.
+    Buckets are not merged (`backend.merge=auto` would merge these few environments on streams, and a merged model's
+    parked slots move the solver's last bits): the paths compared here differ in where the physics runs only."""
     link = _Asked(open_policy({"url": None, "chunk_size": CHUNK, **policy}, "arx_x5_bimanual"), seen)
-    options = BackendOptions(settings={"impl": "warp", "streams": streams}, action_modes=("joint",),
+    options = BackendOptions(settings={"impl": "warp", "streams": streams, "merge": False}, action_modes=("joint",),
                              plan_paths={item.plan_hash: str(item.plan_path) for item in known or queue},
                              privileged=seen is not None)
     built = []
