@@ -162,3 +162,29 @@ def test_clusters_merge_the_least_growth_first_ties_by_keys_and_a_refused_pair_s
     assert keys(cluster(units, 0.5, one_structure({frozenset(("u2", "u4"))}))) == [("u1", "u2"), ("u3", "u4")]
     assert asked == [(("u1",), ("u2",)), (("u1", "u2"), ("u4",)), (("u3",), ("u4",))]
     assert keys(cluster(units, 0.0, one_structure(set()))) == [("u1", "u2"), ("u3",), ("u4",)]
+
+
+def test_what_every_padded_plan_shares_is_written_once_into_each_plans_mjcf():
+    """`pad_group` serialises the asset union and each parked slot once per group and splices the text into every
+    plan's MJCF: each plan's MJCF is whole (no placeholder left, ElementTree's own form), holds every mesh of the
+    union, and parks the slots it does not fill where parking puts them, the same text in every plan parking them."""
+    import xml.etree.ElementTree as ET
+
+    from dojo.backends.mjx.pad import PARK_ORIGIN, PARK_SPACING, pad_group
+
+    plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.5,)), mesh_plan(2, (2.0,))]
+    padded = pad_group(plans, "toy")
+    parked_text: dict[str, set[str]] = {}
+    for pp in padded:
+        assert "dojo-splice" not in pp.xml and ET.tostring(ET.fromstring(pp.xml), encoding="unicode") == pp.xml
+        root = ET.fromstring(pp.xml)
+        assert len(root.find("asset").findall("mesh")) == 3
+        assert len(pp.parked) == 2  # three mesh kinds, one of them its own
+        for slot in pp.parked:
+            body = root.find(f"worldbody/body[@name='{slot}']")
+            j = int(slot.removeprefix("slot"))
+            assert body.get("pos") == f"{PARK_ORIGIN[0] + PARK_SPACING * j:g} {PARK_ORIGIN[1]:g} {PARK_ORIGIN[2]:g}"
+            parked_text.setdefault(slot, set()).add(ET.tostring(body, encoding="unicode"))
+        model = mujoco.MjModel.from_xml_string(pp.xml)
+        assert model.nmesh == 3
+    assert sorted(parked_text) == ["slot0", "slot1", "slot2"] and all(len(t) == 1 for t in parked_text.values())
