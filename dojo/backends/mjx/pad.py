@@ -361,9 +361,10 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False,
     # in a merged padding of the random setting a plan's MJCF (1 MB) is mostly parked slots and the asset union,
     # 37 of its 46 ms (2-core CI machine, 2026-12-03); padding the protocol's 850 mjx plans for a merge at growth
     # 1.0 (3,006 paddings) took 8.8-9.9 s instead of 11.9-12.0, compiles on two threads beside it bounding the whole.
-    # A subtree writes the same text alone as in its tree (no namespaces in MJCF), its tail included. A parked slot
-    # is copied from its template before the template's own plan renames it, so every plan parks the same text
-    # (copied afterwards, later plans' parked bodies had their attributes in another order: the same model).
+    # A subtree writes the same text alone as in its tree (no namespaces in MJCF), its tail included. Every plan
+    # now parks a slot with the same text; copied plan by plan, a parked body followed its template, which the
+    # template's own plan rewrites in place, so plans after that one had its attributes in another order (the
+    # same model).
     shared = {"assets": "".join(ET.tostring(el, encoding="unicode") for el in assets)}
 
     out: list[PaddedPlan] = []
