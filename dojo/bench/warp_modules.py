@@ -85,9 +85,9 @@ def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int
 def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`) that `dojo run
     backend=mjx` would give the mjx backend (`mjx_plans`), bucketed as it would (`backend.merge`,
-    `backend.merge_growth`; under `merge=auto` as a run of `num_envs` environments on a GPU decides; `dof_quantum`: their DoFs rounded up, `dof_rounding`), and the Warp modules their steps
-    need; with `arch`, those modules compiled for that GPU architecture into Warp's kernel cache (`jobs` at a
-    time), on this machine, GPU or not."""
+    `backend.merge_growth`; under `merge=auto` as a run of `num_envs` environments on a GPU decides; `dof_quantum`:
+    their DoFs rounded up, `dof_rounding`), and the Warp modules their steps need; with `arch`, those modules
+    compiled for that GPU architecture into Warp's kernel cache (`jobs` at a time), on this machine, GPU or not."""
     from importlib.metadata import version
 
     from dojo.backends.mjx.bucket import make_buckets

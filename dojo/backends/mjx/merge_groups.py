@@ -60,7 +60,8 @@ AUTO_GROWTH = 1.0
 """The growth `backend.merge=auto` merges with where `merge_growth` is not set: the fastest measured on the
 protocol's own run (H200, 2026-12-03, `dojo run backend=mjx policy=zero suite=robodojo_sim episodes=50 seeds=[0]
 num_envs=1200 backend.merge=true backend.merge_growth=G`): 3,270-3,320 interactions/s at 1.0 (46 buckets, load
-158 s), 2,705 at 2.0 (27 buckets, load 157 s), 2,911 at 0.5 (70 buckets, load 175 s, 2026-12-02)."""
+158 s), 2,705 at 2.0 (27 buckets, load 157 s), 2,911 at 0.5 (70 buckets, load 175 s, earlier that day on another
+machine)."""
 
 
 def choose_merge(requested: bool | str, growth: float | None, streams: bool, environments: int, groups: int
