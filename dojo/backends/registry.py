@@ -1,7 +1,8 @@
 """Backends by name: `make_backend("mujoco", options)` builds any backend, so no caller constructs one by hand.
 
 A backend is one subpackage of `dojo.backends` whose `__init__` defines `make(options: BackendOptions) -> Backend`
-and `unsupported(features, settings) -> {feature: reason}` (which of a plan's `requires` it cannot run), plus one
+and `unsupported(features, settings) -> {feature: reason}` (which of a plan's `requires` it cannot run), may define
+`check(settings)` (refuse settings it cannot take, before a run starts), plus one
 Hydra config file (`dojo/cli/config/backend/<name>.yaml`) whose keys other than `name` reach `make` as
 `options.settings`; one that implements `Backend.attach_rule` also sets `RUNS_POLICY_RULES = True`. The runtime
 names a backend by its config; this module imports the package only when asked, so choosing `mujoco` never
@@ -74,8 +75,22 @@ def runs_policy_rules(name: str) -> bool:
     return bool(getattr(importlib.import_module(f"dojo.backends.{name}"), "RUNS_POLICY_RULES", False))
 
 
+def check_settings(name: str, settings: Mapping[str, Any]) -> None:
+    """Refuse settings backend `name` cannot take, by name, without building it: a package may define
+    `check(settings)`, which raises `ValueError`. The loop builds its backend only when it has work, after the run
+    has started; a typo in a setting fails here, before anything runs."""
+    if name not in available():
+        raise ValueError(f"unknown backend {name!r}; one of {', '.join(available())}")
+    check = getattr(importlib.import_module(f"dojo.backends.{name}"), "check", None)
+    if check is not None:
+        check(settings)
+
+
 def backend_factory(name: str, options: BackendOptions) -> Callable[[], Backend]:
-    """A factory for the evaluation loop, which builds its backend when it has work (and closes it after)."""
+    """A factory for the evaluation loop, which builds its backend when it has work (and closes it after); the
+    settings are checked now (`check_settings`)."""
+    if name in available():  # a test's stand-in backend has no package to ask
+        check_settings(name, options.settings)
     return lambda: make_backend(name, options)
 
 

@@ -22,7 +22,7 @@ from rich.table import Table
 
 from dojo.backends.base import Backend
 from dojo.backends.mujoco.render import ensure_headless_gl
-from dojo.backends.registry import factory_from_config
+from dojo.backends.registry import check_settings, factory_from_config
 
 from dojo.evaluation.camera_budget import budget_message, image_size, images_per_second
 from dojo.compiler.episodes import PlannedEpisode
@@ -57,11 +57,13 @@ def _backend_factory(backend: dict[str, Any], metadata: Any, cameras: tuple[str,
 
 
 def _routes(cfg: DictConfig, queue: list[PlannedEpisode], quiet: bool) -> list[tuple[dict[str, Any], list[Any]]]:
-    """The run's episodes by the backend that runs them (`dojo.evaluation.routing`), each detour printed."""
+    """The run's episodes by the backend that runs them (`dojo.evaluation.routing`), each detour printed; the
+    chosen backend's settings checked first (`check_settings`), so that a bad one stops the run before it starts."""
     from dojo.evaluation.routing import route
 
     chosen = OmegaConf.to_container(cfg.backend, resolve=True)
     name = str(chosen.pop("name"))  # type: ignore[union-attr]
+    check_settings(name, chosen)  # type: ignore[arg-type]
     routes, detours = route(queue, name, chosen)  # type: ignore[arg-type]
     for detour in detours:
         Console(stderr=True, soft_wrap=True).print(f"[yellow]backend:[/yellow] {escape(detour.message())}",

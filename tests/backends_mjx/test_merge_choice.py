@@ -62,3 +62,21 @@ def test_load_buckets_the_plans_as_auto_decides_and_says_why(monkeypatch, caplog
     assert asked == [(3, merged, AUTO_GROWTH if merged else GROWTH)] and backend.merged is merged
     said = "merged across tasks, growth 1" if merged else "not merged across tasks"
     assert f"mjx backend: buckets {said} (backend.merge=auto: " in caplog.text
+
+
+def test_a_bad_merge_or_streams_setting_stops_a_run_before_any_backend_is_built(monkeypatch) -> None:
+    """`registry.check_settings` through the run's factory: the loop builds its backend only when it has work,
+    after the run has started, so a typo is refused where the factory is made."""
+    from dojo.backends import mjx
+    from dojo.backends.registry import factory_from_config
+
+    monkeypatch.setattr(mjx, "make", lambda options: pytest.fail("no backend may be built"))
+    refused = {"merge": ("often", "backend.merge takes true, false or auto, not 'often'"),
+               "streams": ("maybe", "backend.streams takes true, false or auto, not 'maybe'"),
+               "merge_growth": ("big", "backend.merge_growth takes a number of at least 0 or null, not 'big'")}
+    for key, (value, message) in refused.items():
+        with pytest.raises(ValueError, match=message):
+            factory_from_config({"name": "mjx", key: value})
+    with pytest.raises(ValueError, match="not -1.0"):
+        factory_from_config({"name": "mjx", "merge_growth": -1})
+    factory_from_config({"name": "mjx", "merge": None, "streams": "auto", "merge_growth": float("inf")})

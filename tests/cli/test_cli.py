@@ -159,6 +159,16 @@ def test_a_misspelt_key_names_the_key_and_does_not_suggest_adding_it() -> None:
     assert "to add a new key write +zzzz=VALUE" in new.stderr
 
 
+def test_a_bad_backend_setting_stops_the_run_before_it_starts(tmp_path: Path) -> None:
+    """`registry.check_settings`: refused with the setting's name before anything runs, so no results store is
+    made and no progress is printed."""
+    results = tmp_path / "r.sqlite"
+    result = dojo("run", "backend=mjx", "backend.merge=maybe", "policy=zero", "suite=robodojo_sim_mini",
+                  "tasks=[push_t]", "episodes=1", "num_envs=1", f"results={results}", "progress=jsonl", cwd=tmp_path)
+    assert result.returncode == 1 and not results.exists() and result.stdout == ""
+    assert "dojo run: error: ValueError: backend.merge takes true, false or auto, not 'maybe'" in result.stderr
+
+
 def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
     result = subprocess.run([sys.executable, "-m", "dojo.cli.main", "doctor", "--format", "json"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=120,

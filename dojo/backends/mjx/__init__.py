@@ -69,10 +69,9 @@ def make(options: BackendOptions) -> MjxBackend:
     `program_buckets` (at most this many buckets in one jitted program; null: `batch.PROGRAM_BUCKETS`).
     Every plan of the run is loaded up front (`preload`), so the run compiles once, and only for the action modes
     the policy sends (`options.action_modes`)."""
+    check(options.settings)
     streams = options.settings.get("streams", "auto")
     streams = "auto" if streams is None else streams
-    if streams not in (True, False, "auto"):
-        raise ValueError(f"backend.streams takes true, false or auto, not {streams!r}")
     if streams == "auto" and not streams_may_run(options.settings.get("impl"), options.cameras):
         streams = False
     if streams:  # the lanes allocate through Warp: JAX takes half the GPU, not 3/4
@@ -101,6 +100,24 @@ def make(options: BackendOptions) -> MjxBackend:
                          program_buckets=options.settings.get("program_buckets"))
     backend.preload([Plan.load(Path(p)) for p in (options.plan_paths or {}).values()])
     return backend
+
+
+def check(settings: Mapping[str, Any]) -> None:
+    """Refuse, by name, a `backend.streams` or `backend.merge` other than true, false or auto (null: auto), and a
+    `backend.merge_growth` that is not a number of at least 0 (`registry.check_settings`: before a run starts)."""
+    from dojo.backends.mjx.merge_groups import choose_merge
+
+    streams = settings.get("streams")
+    if streams not in (None, True, False, "auto"):
+        raise ValueError(f"backend.streams takes true, false or auto, not {streams!r}")
+    merge, growth = settings.get("merge"), settings.get("merge_growth")
+    try:
+        growth = None if growth is None else float(growth)
+    except (TypeError, ValueError):
+        raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {growth!r}") from None
+    if growth is not None and not growth >= 0:
+        raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {growth!r}")
+    choose_merge("auto" if merge is None else merge, growth, False, 0, 0)
 
 
 def streams_may_run(impl: Any, cameras: Sequence[str]) -> bool:
