@@ -77,6 +77,6 @@ def test_a_bad_merge_or_streams_setting_stops_a_run_before_any_backend_is_built(
     for key, (value, message) in refused.items():
         with pytest.raises(ValueError, match=message):
             factory_from_config({"name": "mjx", key: value})
-    with pytest.raises(ValueError, match="not -1.0"):
+    with pytest.raises(ValueError, match="at least 0 or null, not -1$"):
         factory_from_config({"name": "mjx", "merge_growth": -1})
     factory_from_config({"name": "mjx", "merge": None, "streams": "auto", "merge_growth": float("inf")})

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -110,13 +111,13 @@ def check(settings: Mapping[str, Any]) -> None:
     streams = settings.get("streams")
     if streams not in (None, True, False, "auto"):
         raise ValueError(f"backend.streams takes true, false or auto, not {streams!r}")
-    merge, growth = settings.get("merge"), settings.get("merge_growth")
+    merge, given = settings.get("merge"), settings.get("merge_growth")
     try:
-        growth = None if growth is None else float(growth)
+        growth = None if given is None else float(given)
     except (TypeError, ValueError):
-        raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {growth!r}") from None
+        growth = math.nan
     if growth is not None and not growth >= 0:
-        raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {growth!r}")
+        raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {given!r}")
     choose_merge("auto" if merge is None else merge, growth, False, 0, 0)
 
 
