@@ -92,7 +92,8 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
 
     from dojo.backends.mjx.bucket import make_buckets
     from dojo.backends.mjx.dof_rounding import round_bucket
-    from dojo.backends.mjx.merge_groups import choose_merge
+    from dojo.backends.mjx import merge_settings
+    from dojo.backends.mjx.merge_groups import choose_merge, task_groups
     from dojo.bench.sim_bench import load_plans
 
     try:
@@ -103,11 +104,8 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     backend = cfg.get("backend") or {}
     plans, elsewhere = mjx_plans(load_plans(cfg), backend)
     # as `dojo run` on a GPU without cameras (physics on streams) with `num_envs` environments would bucket them
-    groups = len({(p.task, p.setting, p.n_substeps) for p in plans})
-    requested, growth = backend.get("merge", "auto"), backend.get("merge_growth")
-    merge, growth, _ = choose_merge("auto" if requested is None else requested,
-                                    None if growth is None else float(growth), True,
-                                    min(int(cfg.get("num_envs") or len(plans)), len(plans)), groups)
+    merge, growth, _ = choose_merge(*merge_settings(backend), True,
+                                    min(int(cfg.get("num_envs") or len(plans)), len(plans)), task_groups(plans))
     quantum = int(cfg.get("dof_quantum") or 1)
     buckets = [round_bucket(b, quantum) for b in make_buckets(plans, merge=merge, growth=growth)]
     log.info("%d plans in %d buckets", len(plans), len(buckets))

@@ -85,7 +85,7 @@ def make(options: BackendOptions) -> MjxBackend:
     from dojo.backends.mjx.backend import MjxBackend
 
     impl = options.settings.get("impl")
-    merge, growth = options.settings.get("merge", "auto"), options.settings.get("merge_growth")
+    merge, growth = merge_settings(options.settings)
     if jax.default_backend() == "cpu":
         logging.getLogger(__name__).warning(
             "backend=mjx on a CPU: %s; backend=mujoco is the CPU backend",
@@ -94,8 +94,7 @@ def make(options: BackendOptions) -> MjxBackend:
     backend = MjxBackend(impl=str(impl) if impl is not None else None, privileged=options.privileged,
                          plan_paths=dict(options.plan_paths or {}), cameras=options.cameras, width=options.width,
                          height=options.height, depth=options.depth, devices=options.settings.get("devices"),
-                         merge="auto" if merge is None else merge,
-                         merge_growth=None if growth is None else float(growth),
+                         merge=merge, merge_growth=growth,
                          graph_mode=options.settings.get("graph_mode"), action_modes=options.action_modes,
                          streams=streams,
                          program_buckets=options.settings.get("program_buckets"))
@@ -106,19 +105,28 @@ def make(options: BackendOptions) -> MjxBackend:
 def check(settings: Mapping[str, Any]) -> None:
     """Refuse, by name, a `backend.streams` or `backend.merge` other than true, false or auto (null: auto), and a
     `backend.merge_growth` that is not a number of at least 0 (`registry.check_settings`: before a run starts)."""
-    from dojo.backends.mjx.merge_groups import choose_merge
-
     streams = settings.get("streams")
     if streams not in (None, True, False, "auto"):
         raise ValueError(f"backend.streams takes true, false or auto, not {streams!r}")
+    merge_settings(settings)
+
+
+def merge_settings(settings: Mapping[str, Any]) -> tuple[bool | str, float | None]:
+    """`backend.merge` and `backend.merge_growth` as the backend and `dojo bench kernels` take them: the merge true,
+    false or `auto` (null: auto), the growth a float or None (unset); either refused by name where it is not one of
+    those (`merge_groups.choose_merge` decides what they mean for a run)."""
+    from dojo.backends.mjx.merge_groups import choose_merge
+
     merge, given = settings.get("merge"), settings.get("merge_growth")
+    merge = "auto" if merge is None else merge
     try:
         growth = None if given is None else float(given)
     except (TypeError, ValueError):
         growth = math.nan
     if growth is not None and not growth >= 0:
         raise ValueError(f"backend.merge_growth takes a number of at least 0 or null, not {given!r}")
-    choose_merge("auto" if merge is None else merge, growth, False, 0, 0)
+    choose_merge(merge, growth, False, 0, 0)
+    return merge, growth
 
 
 def streams_may_run(impl: Any, cameras: Sequence[str]) -> bool:

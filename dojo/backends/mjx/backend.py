@@ -64,7 +64,7 @@ from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, choose_str
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
-from dojo.backends.mjx.merge_groups import choose_merge
+from dojo.backends.mjx.merge_groups import choose_merge, task_groups
 from dojo.backends.mjx.observations import StepObservations
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
@@ -386,8 +386,8 @@ class MjxBackend(Backend):
         if len({p.embodiment for p in self._known.values()}) > 1:
             raise ValueError("one backend runs one embodiment (action layout)")
         start = time.perf_counter()
-        groups = len({(p.task, p.setting, p.n_substeps) for p in self._known.values()})
-        self.merged, growth, why = choose_merge(self.merge, self.merge_growth, self.streams, len(plans), groups)
+        self.merged, growth, why = choose_merge(self.merge, self.merge_growth, self.streams, len(plans),
+                                                task_groups(self._known.values()))
         if self.merge == "auto" or self.merged:
             log.info("mjx backend: buckets %s (backend.merge=%s)",
                      f"merged across tasks, growth {growth:g}" if self.merged else "not merged across tasks",

@@ -21,7 +21,7 @@ import heapq
 import xml.etree.ElementTree as ET
 from collections import Counter
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import mujoco
 
@@ -64,15 +64,20 @@ num_envs=1200 backend.merge=true backend.merge_growth=G`): 3,270-3,320 interacti
 machine)."""
 
 
+def task_groups(plans: Iterable[Plan]) -> int:
+    """How many distinct (task, setting, sub-steps) the plans hold: the fewest buckets `merge=False` can make them
+    (`choose_merge`'s `groups`)."""
+    return len({(p.task, p.setting, p.n_substeps) for p in plans})
+
+
 def choose_merge(requested: bool | str, growth: float | None, streams: bool, environments: int, groups: int
                  ) -> tuple[bool, float, str]:
     """(whether the backend merges buckets across tasks, the growth it pads and merges with, why, for the log).
 
     `requested`: `backend.merge`, true, false or `auto`; `growth`: `backend.merge_growth`, None where unset (then
     `GROWTH`, or `AUTO_GROWTH` where auto merges); `streams`: whether the physics runs on streams (auto merges only
-    there: that is where it was measured); `environments`: the run's slots; `groups`: its plans' distinct (task,
-    setting, sub-steps), the fewest buckets `merge=False` can make, so `environments / groups` is the most
-    environments a separate bucket can average."""
+    there: that is where it was measured); `environments`: the run's slots; `groups`: its plans' `task_groups`, so
+    `environments / groups` is the most environments a separate bucket can average."""
     if requested not in (True, False, "auto"):
         raise ValueError(f"backend.merge takes true, false or auto, not {requested!r}")
     plain = GROWTH if growth is None else float(growth)

@@ -280,13 +280,14 @@ def _content_names(roots: Sequence[ET.Element], contents: Sequence[Sequence[str]
 
 
 def _asset_union(roots: Sequence[ET.Element]) -> list[ET.Element]:
-    """The group's 2-D textures, materials and meshes, one per name, in a canonical order."""
+    """The group's 2-D textures, materials and meshes, one per name, in a canonical order: the roots' own
+    elements, which `pad_group` serialises before it rewrites any root."""
     seen: dict[tuple[str, str], ET.Element] = {}
     for root in roots:
         for el in _unioned(root):
             seen.setdefault((el.tag, el.get("name", "")), el)
     order = {tag: i for i, tag in enumerate(_UNIONED_ASSETS)}
-    return [_copied(seen[k]) for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
+    return [seen[k] for k in sorted(seen, key=lambda k: (order[k[0]], k[1]))]
 
 
 def slotted_bodies(plans: Sequence[Plan], parsed: ParsedPlans | None = None,
