@@ -44,11 +44,12 @@ def _controls(buckets) -> list[np.ndarray]:
     return [np.full((B, b.model.nu), 0.2, np.float32) for b in buckets]
 
 
-def _run_engine(buckets, streams: bool = False, refill: bool = False, per_program: int | None = None
-                ) -> Engine | EngineGroups:
+def _run_engine(buckets, streams: bool = False, refill: bool = False, per_program: int | None = None,
+                idle: bool = False) -> Engine | EngineGroups:
     """TICKS control steps from the members' initial states, the jitted tick ending as the backend's does (a
     forward); with `refill`, halfway through, environment 1 of each bucket starts another member's episode while
-    environment 2 pauses. `per_program`: at most this many buckets in one program (`make_engine`)."""
+    environment 2 pauses; with `idle`, in the first step no environment of bucket 0 resets or steps.
+    `per_program`: at most this many buckets in one program (`make_engine`)."""
     engine = make_engine(buckets, [B] * len(buckets), "warp", hooks=forward_hooks(), streams=streams,
                          per_program=per_program)
     members = [np.arange(B) % len(b.members) for b in buckets]
@@ -60,6 +61,8 @@ def _run_engine(buckets, streams: bool = False, refill: bool = False, per_progra
             members = [(m + np.array([0, 1, 0, 0])) % len(b.members) for m, b in zip(members, buckets)]
             engine.tick(members, [np.array([False, True, False, False])] * len(buckets),
                         [np.array([True, False, False, True])] * len(buckets), ctrl)
+        elif idle and k == 0:
+            engine.tick(members, off, [np.zeros(B, bool)] + [np.ones(B, bool)] * (len(buckets) - 1), ctrl)
         else:
             engine.tick(members, off, on, ctrl)
     return engine
@@ -70,12 +73,13 @@ def _engine_state(buckets) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(np.asarray(d.qpos), np.asarray(d.qvel)) for d in _run_engine(buckets).data]
 
 
-def _assert_split_ticks_as_jitted(buckets) -> None:
+def _assert_split_ticks_as_jitted(buckets, idle: bool = False) -> Engine:
     """`_run_engine` with a refill, jitted and split: the state, the poses and the contact pool, bit for bit, in
     one compiled program and without overflow. The lanes refresh only what the observations and the renderer read
     after their sub-steps (`streams.refresh`), the jitted tick runs a whole forward. (The toy scenes have no
     cameras, lights or tendons: the ee-modes test compares those on a real robot.)"""
-    plain, split = _run_engine(buckets, refill=True), _run_engine(buckets, streams=True, refill=True)
+    plain = _run_engine(buckets, refill=True, idle=idle)
+    split = _run_engine(buckets, streams=True, refill=True, idle=idle)
     for a, b in zip(plain.data, split.data):
         for name in ("qpos", "qvel", "act", "time", "qacc_warmstart", "xpos", "xquat", "xmat", "geom_xpos",
                      "geom_xmat", "site_xpos", "site_xmat"):
@@ -85,6 +89,7 @@ def _assert_split_ticks_as_jitted(buckets) -> None:
                                           err_msg=name)
     assert split.compilations() == 1 and not split.overflows()
     assert any(int(np.asarray(d._impl.nacon)[0]) for d in split.data)  # contacts to compare
+    return split
 
 
 def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets) -> None:
@@ -105,6 +110,14 @@ def test_the_stream_engine_steps_bit_for_bit_what_the_jitted_tick_steps(buckets)
 
 def test_an_engine_with_its_physics_on_streams_ticks_bit_for_bit_as_the_jitted_tick(buckets) -> None:
     _assert_split_ticks_as_jitted(buckets)
+
+
+def test_a_lane_whose_environments_all_idle_is_not_launched_and_the_tick_stays_the_jitted_ticks(buckets) -> None:
+    """In a tick where no environment of bucket 0 resets or steps its lane is left out (the engine counts it), and
+    what the tick leaves is still the jitted tick's bit for bit, which keeps such environments as they were."""
+    split = _assert_split_ticks_as_jitted(buckets, idle=True)
+    assert split.lane_ticks() == (len(buckets) * (TICKS + 1) - 1, 1)
+    assert _run_engine(buckets).lane_ticks() == (0, 0)  # no lanes: the jitted tick
 
 
 def test_buckets_in_groups_of_programs_tick_bit_for_bit_as_one_program(buckets, caplog) -> None:
@@ -128,6 +141,7 @@ def test_buckets_in_groups_of_programs_tick_bit_for_bit_as_one_program(buckets, 
                 np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)),
                                               err_msg=f"{name}, {per_program} a program")
         assert groups.compilations() == 1 and not groups.overflows()
+        assert groups.lane_ticks() == ((len(buckets) * (TICKS + 1), 0) if streams else (0, 0))
     with pytest.raises(ValueError, match="at least 1"):
         make_engine(buckets, [B] * len(buckets), "warp", per_program=0)
 

@@ -585,6 +585,10 @@ class MjxBackend(Backend):
         `finally` calls this, also when it was interrupted mid-tick."""
         if self._engine is not None:
             self._engine.wait_for_lanes()
+            launched, idle = self._engine.lane_ticks()
+            if idle:
+                log.info("mjx backend: %d of %d lane ticks not launched, every environment of the lane idle",
+                         idle, launched + idle)
         for renderer in self._renderers:
             renderer.close()
         self._renderers = []

@@ -621,7 +621,8 @@ class Engine:
                    inputs: Sequence[Tree], steps: Sequence[Any] | None = None) -> Callable[[], tuple[Tree, ...]]:
         """`tick` in two parts, so that the lanes of several engines run at once (`EngineGroups`): this starts the
         tick and returns the call that ends it and gives its outputs. Without `streams` it starts the whole tick;
-        with `streams` it runs the first jitted half and launches the lanes, and the call waits for the lanes and
+        with `streams` it runs the first jitted half and launches the lanes of the buckets where an environment
+        resets or steps (`StreamPhysics.launch`), and the call waits for the lanes and
         runs the second half, each half waited for (with `split_ms`, the three parts' milliseconds are kept)."""
         steps = steps if steps is not None else [np.zeros(a.size, np.int32) for a in self.arrays]
         inputs = tuple(jax.tree.map(jnp.asarray, i) for i in inputs)
@@ -640,7 +641,8 @@ class Engine:
         extra, before = wait_for(call(self._before, self._table_leaves, self._words, self._extra_leaves, flags,
                                       inputs))
         times.append(time.perf_counter())
-        self._physics.launch([b[1] for b in before])
+        self._physics.launch([b[1] for b in before], [bool(np.any(r)) or bool(np.any(s))
+                                                      for r, s in zip(resets, stepping)])
 
         def finish() -> tuple[Tree, ...]:
             outboxes = self._physics.finish()
@@ -666,6 +668,13 @@ class Engine:
         results were stored."""
         if self._physics is not None:
             self._physics.engine.synchronize()
+
+    def lane_ticks(self) -> tuple[int, int]:
+        """With `streams`, (lane ticks launched, lane ticks left out because the lane's environments were all
+        idle) since the engine was built; (0, 0) without."""
+        if self._physics is None:
+            return 0, 0
+        return self._physics.engine.lane_ticks, self._physics.engine.idle_ticks
 
     def lane_ms(self, ticks: int = 5) -> list[dict[str, Any]]:
         """With `streams`, each lane's tick on its own (`StreamEngine.lane_ms`: tasks, environments, median ms of
@@ -768,6 +777,11 @@ class EngineGroups:
         """`Engine.wait_for_lanes` of every group."""
         for engine in self.engines:
             engine.wait_for_lanes()
+
+    def lane_ticks(self) -> tuple[int, int]:
+        """`Engine.lane_ticks` summed over the groups."""
+        counts = [engine.lane_ticks() for engine in self.engines]
+        return sum(c[0] for c in counts), sum(c[1] for c in counts)
 
     def overflows(self) -> dict[str, dict[str, int]]:
         """Every group's `Engine.overflows`, in one map (bucket keys are unique across groups)."""
