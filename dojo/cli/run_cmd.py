@@ -30,6 +30,7 @@ from dojo.evaluation.evaluate import evaluate, run_id_for
 from dojo.evaluation.policy_link import (PRIVILEGED_NOTE, device_rule_for, is_privileged, policy_config_for,
                                          policy_identity)
 from dojo.evaluation.recorder import EpisodeRecorder, record_cameras
+from dojo.evaluation.side_by_side import SharedProgress, run_side_by_side
 
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
 
@@ -122,6 +123,7 @@ def run_task(cfg: DictConfig) -> int:
     try:  # a plan no backend runs, or policy.on_device=on where it cannot be, stops the run here
         routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
         changed = _rule_changes_results(policy, routes, bool(recorded), on_device)
+        side_by_side = routes_side_by_side(cfg.routes) and len(routes) > 1
     except BaseException:
         policy.close()
         raise
@@ -147,15 +149,25 @@ def run_task(cfg: DictConfig) -> int:
                                       timed_here=str(cfg.backend.name) == "mujoco")
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
-                for backend, episodes in routes:
-                    plan_paths = {item.plan_hash: str(item.plan_path) for item in episodes}
-                    if cfg.launcher.name == "ray":
+                if cfg.launcher.name == "ray":
+                    for backend, episodes in routes:
+                        plan_paths = {item.plan_hash: str(item.plan_path) for item in episodes}
                         _evaluate_on_ray(cfg, backend, episodes, policy_cfg, embodiment, run_id, store, progress,
                                          plan_paths, timeout, (meta, cameras, (width, height)), recorder_factory)
+                else:
+                    common = dict(run_id=run_id, num_envs=int(cfg.num_envs), timeout=timeout,
+                                  rendering=(meta, cameras, (width, height)), recorder_factory=recorder_factory,
+                                  on_device=on_device)
+                    if side_by_side:
+                        shared = SharedProgress(progress)
+                        run_side_by_side(
+                            [partial(_evaluate_route, routes, 0, policy=policy, store=store, progress=shared, **common)]
+                            + [partial(_evaluate_route_apart, routes, k, policy_cfg=policy_cfg, embodiment=embodiment,
+                                       store_path=store_path, progress=shared, **common)
+                               for k in range(1, len(routes))])
                     else:
-                        evaluate(episodes, _backend_factory(backend, meta, cameras, (width, height), plan_paths),
-                                 policy, store, run_id, num_envs=int(cfg.num_envs), progress=progress,
-                                 episode_timeout_s=timeout, recorder_factory=recorder_factory, on_device=on_device)
+                        for k in range(len(routes)):
+                            _evaluate_route(routes, k, None, policy=policy, store=store, progress=progress, **common)
             rows = store.rows(run_id)
     finally:
         policy.close()
@@ -168,6 +180,46 @@ def run_task(cfg: DictConfig) -> int:
         write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
         print(f"report: {report_path} and {report_path.with_suffix('.html')}")
     return 0
+
+
+ROUTES = ("side_by_side", "in_turn")
+"""`routes`: the episodes of the chosen backend and of its fallback at the same time, or one backend's after the
+other's (`dojo.evaluation.side_by_side`)."""
+
+
+def routes_side_by_side(value: Any) -> bool:
+    """Whether `routes` (one of `ROUTES`) runs a run's routes at the same time."""
+    if value not in ROUTES:
+        raise ValueError(f"routes must be one of {', '.join(ROUTES)}, got {value!r}")
+    return value == "side_by_side"
+
+
+def _evaluate_route(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop: Any, *, policy: Any, store: Any,
+                    run_id: str, num_envs: int, rendering: tuple[Any, tuple[str, ...], tuple[int, int]],
+                    progress: Any, timeout: float | None, recorder_factory: Any, on_device: Any) -> int:
+    """`evaluate` on route `k` in this process, with the policy link `policy` and the results store `store`; the
+    route's environments are known to the policy by ids of its own (`k * num_envs` on), so that routes may share
+    one policy server."""
+    backend, episodes = routes[k]
+    plan_paths = {item.plan_hash: str(item.plan_path) for item in episodes}
+    return evaluate(episodes, _backend_factory(backend, *rendering, plan_paths), policy, store, run_id,
+                    num_envs=num_envs, progress=progress, episode_timeout_s=timeout,
+                    recorder_factory=recorder_factory, on_device=on_device, env_id_base=k * num_envs, stop=stop)
+
+
+def _evaluate_route_apart(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop: Any, *,
+                          policy_cfg: dict[str, Any], embodiment: str, store_path: Path, **shared: Any) -> int:
+    """`_evaluate_route` on a thread of its own (`side_by_side`), with a policy link and a results-store connection
+    of its own, as a launcher's worker has: a link is one conversation, an sqlite3 connection serves one thread."""
+    from dojo.evaluation.policy_link import open_policy
+    from dojo.evaluation.results_store import ResultsStore
+
+    link = open_policy(policy_config_for(policy_cfg, k), embodiment)
+    try:
+        with ResultsStore(store_path) as store:
+            return _evaluate_route(routes, k, stop, policy=link, store=store, **shared)
+    finally:
+        link.close()
 
 
 def _rule_changes_results(policy: Any, routes: list[tuple[dict[str, Any], list[Any]]], recording: bool,

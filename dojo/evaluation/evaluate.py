@@ -33,6 +33,7 @@ import bisect
 import hashlib
 import json
 import logging
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -57,6 +58,11 @@ log = logging.getLogger(__name__)
 
 TIMEOUT = "timeout"
 POLICY_ERROR = "policy_error"
+
+
+class Stopped(Exception):
+    """The loop was told to stop (`evaluate`'s `stop`): the episodes it had in flight are not recorded, and a
+    resumed run re-runs them, as after an interrupt."""
 
 
 @dataclass
@@ -134,11 +140,12 @@ class TimeSplit:
         finally:
             self.seconds[name] += time.perf_counter() - start
 
-    def line(self) -> str:
+    def line(self, backend: str) -> str:
+        """The closing line of the loop on `backend` (named: a run's routes each close with one)."""
         total = time.perf_counter() - self._start
         parts = [f"{name} {self.seconds[name]:.1f} s" for name in self.PHASES]
         rest = total - sum(self.seconds[name] for name in self.PHASES)
-        return f"where the loop's {total:.1f} s went: {', '.join(parts)}, the rest {rest:.1f} s"
+        return f"where the loop's {total:.1f} s on backend {backend} went: {', '.join(parts)}, the rest {rest:.1f} s"
 
 
 def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend], policy: PolicyLink,
@@ -146,7 +153,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
              episode_timeout_s: float | None = None,
              recorder_factory: Callable[[], SlotRecorder] | None = None,
              more: Callable[[int], list[PlannedEpisode]] | None = None, on_device: Any = "off",
-             env_id_base: int = 0) -> int:
+             env_id_base: int = 0, stop: threading.Event | None = None) -> int:
     """Run every queued episode not yet in the store for `run_id`; return how many were run now.
 
     `more(n)` (optional) is asked for up to n further episodes whenever slots are free and the queue is empty
@@ -154,7 +161,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     never holds episodes that another, idle worker could be running. `on_device` (auto | on | off): whether the
     policy's rule runs inside the backend's step (module docstring). The policy knows slot i as environment
     `env_id_base + i`: loops that share one policy server (a launcher's workers) give theirs disjoint ranges, or
-    a policy that keeps state per environment (frames, memory) would see two episodes under one id."""
+    a policy that keeps state per environment (frames, memory) would see two episodes under one id. `stop`: once
+    set (by another loop of the run, `side_by_side`), the loop raises `Stopped` before its next step."""
     finished = store.finished(run_id)
     todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
     if more is not None and len(todo) < num_envs:
@@ -273,6 +281,8 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
                 policy.reset(addressed(slots))
             backend.prefetch([plan_of(todo[j]) for j in range(min(num_envs, len(todo)))])
         while slots:
+            if stop is not None and stop.is_set():
+                raise Stopped(f"{len(slots)} episode(s) in flight on backend {backend.name} left for a resumed run")
             result = host_step() if rule is None else device_step()
             if result is None:
                 continue
@@ -291,7 +301,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
         for rec in recorders.values():
             rec.discard()  # only episodes still in flight have files open
         backend.close()
-        log.info(split.line())
+        log.info(split.line(backend.name))
     return ran
 
 

@@ -169,6 +169,14 @@ def test_a_bad_backend_setting_stops_the_run_before_it_starts(tmp_path: Path) ->
     assert "dojo run: error: ValueError: backend.merge takes true, false or auto, not 'maybe'" in result.stderr
 
 
+def test_an_unknown_routes_setting_stops_the_run_before_it_starts(tmp_path: Path) -> None:
+    results = tmp_path / "r.sqlite"
+    result = dojo("run", "routes=both", "policy=zero", "suite=robodojo_sim_mini", "tasks=[push_t]", "episodes=1",
+                  "num_envs=1", f"results={results}", "progress=jsonl", cwd=tmp_path)
+    assert result.returncode == 1 and not results.exists() and result.stdout == ""
+    assert "dojo run: error: ValueError: routes must be one of side_by_side, in_turn, got 'both'" in result.stderr
+
+
 def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
     result = subprocess.run([sys.executable, "-m", "dojo.cli.main", "doctor", "--format", "json"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=120,
