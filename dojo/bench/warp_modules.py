@@ -54,22 +54,25 @@ def _module_names(launches: Launches) -> set[str]:
     return {_module_name(module) for module in launches.values()}
 
 
-def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int = 1) -> dict[str, Any]:
+def kernel_figures(buckets: Sequence[Bucket], arch: int | None = None, jobs: int = 1,
+                   sizes: Sequence[int] | None = None) -> dict[str, Any]:
     """The modules of every bucket: how many in all, how many every bucket shares, how many of each generated
     kernel, and per bucket its DoFs, rows, the modules no other bucket needs and the kernels its lane launches
-    (`recorded_tick`: a step, a forward, the lane's refresh, a tick), from one recording each. With `arch`, every
-    module is also compiled for `sm_<arch>` into Warp's kernel cache, `jobs` at a time (`kernel_cache`), under
-    `ahead`."""
+    (`recorded_tick`: a step, a forward, the lane's refresh, a tick), from one recording each, of a lane of
+    `sizes[k]` worlds (one each when None). With `arch`, every module is also compiled for `sm_<arch>` into Warp's
+    kernel cache, `jobs` at a time (`kernel_cache`), under `ahead`."""
     start = time.perf_counter()
-    recorded = {b.key: recorded_tick(b, "cpu") for b in buckets}
+    sizes = list(sizes) if sizes is not None else [1] * len(buckets)
+    recorded = {b.key: recorded_tick(b, "cpu", size) for b, size in zip(buckets, sizes)}
     sets = {key: _module_names(launches) for key, (launches, _) in recorded.items()}
     union = set().union(*sets.values())
     shared = set.intersection(*sets.values()) if sets else set()
     uses = Counter(m for s in sets.values() for m in s)
-    per_bucket = {b.key: {"tasks": list(b.tasks), "nv": int(b.model.nv), "rows": contact_capacity(b)[1],
+    per_bucket = {b.key: {"tasks": list(b.tasks), "worlds": size, "nv": int(b.model.nv),
+                          "rows": contact_capacity(b)[1],
                           "modules": len(sets[b.key]), "own": sorted(m for m in sets[b.key] if uses[m] == 1),
                           "launches": recorded[b.key][1]}
-                  for b in buckets}
+                  for b, size in zip(buckets, sizes)}
     kinds = Counter(m.split(NAMED_KERNEL)[0] for m in union if NAMED_KERNEL in m)
     figures = {"modules": len(union), "shared_by_every_bucket": len(shared),
                "generated_kernels": dict(kinds.most_common()), "per_bucket": per_bucket,
@@ -86,8 +89,10 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     """`dojo bench kernels`: the plans of `dojo bench sim` (`tasks`, `episodes`, `plans`) that `dojo run
     backend=mjx` would give the mjx backend (`mjx_plans`), bucketed as it would (`backend.merge`,
     `backend.merge_growth`; under `merge=auto` as a run of `num_envs` environments on a GPU decides; `dof_quantum`:
-    their DoFs rounded up, `dof_rounding`), and the Warp modules their steps need; with `arch`, those modules
-    compiled for that GPU architecture into Warp's kernel cache (`jobs` at a time), on this machine, GPU or not."""
+    their DoFs rounded up, `dof_rounding`), and the Warp modules their steps need in lanes of the sizes such a run
+    gives them on one GPU (`num_envs`: a bucket's lane holds as many worlds as its plans the run's slots can hold
+    at once); with `arch`, those modules compiled for that GPU architecture into Warp's kernel cache (`jobs` at a
+    time), on this machine, GPU or not."""
     from importlib.metadata import version
 
     from dojo.backends.mjx.bucket import make_buckets
@@ -104,16 +109,19 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     backend = cfg.get("backend") or {}
     plans, elsewhere = mjx_plans(load_plans(cfg), backend)
     # as `dojo run` on a GPU without cameras (physics on streams) with `num_envs` environments would bucket them
-    merge, growth, _ = choose_merge(*merge_settings(backend), True,
-                                    min(int(cfg.get("num_envs") or len(plans)), len(plans)), task_groups(plans))
+    slots = min(int(cfg.get("num_envs") or len(plans)), len(plans))
+    merge, growth, _ = choose_merge(*merge_settings(backend), True, slots, task_groups(plans))
     quantum = int(cfg.get("dof_quantum") or 1)
     buckets = [round_bucket(b, quantum) for b in make_buckets(plans, merge=merge, growth=growth)]
+    # and size their lanes as its backend does on one GPU: a bucket gets a row for each of its plans the slots can
+    # hold at once (`MjxBackend.load`)
+    sizes = [min(slots, len(b.members)) for b in buckets]
     log.info("%d plans in %d buckets", len(plans), len(buckets))
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
             "run_on_mujoco": elsewhere, "merge": merge, "growth": growth if math.isfinite(growth) else "inf",
             "dof_quantum": quantum,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
-            **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1))}
+            **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1), sizes)}
 
 
 def mjx_plans(plans: Sequence[Any], settings: Mapping[str, Any]) -> tuple[list[Any], dict[str, int]]:

@@ -123,3 +123,37 @@ def test_the_kernels_are_those_of_the_plans_a_mjx_run_keeps_on_mjx():
     assert figures["buckets"] == 1
     with pytest.raises(ValueError, match="no plan here runs on backend mjx"):
         mjx_plans([p for p in plans if p.task == "insert_key"], {})
+
+
+@needs_warp
+def test_a_bucket_is_recorded_as_a_lane_of_its_size_holds_it():
+    """The modules recorded for a lane of 4 worlds are those the stream engine's own lane of 4 launches; one world
+    would miss the variants MuJoCo Warp specialises on a batched field's rows (the broadphase of members whose geom
+    bounds differ)."""
+    import warp as wp
+
+    from dojo.backends.mjx.streams import StreamEngine
+    from dojo.backends.mjx.warp_launches import _recording, recorded_tick
+    from dojo.bench.warp_modules import _module_names
+
+    [bucket] = make_buckets([toy_plan(setting="random", seed=s, clutter=c)
+                             for s, c in enumerate([("ball",), ("ball", "box")])])
+    assert "geom_aabb" in bucket.varying
+    engine = StreamEngine([bucket], [4], [[]], device="cpu")
+    lane, launched = engine.lanes[0], {}
+    with wp.ScopedDevice("cpu"), _recording(wp, launched):
+        engine.mjw.step(lane.model, lane.data)
+    as_lane, one = (_module_names(recorded_tick(bucket, "cpu", n)[0]) for n in (4, 1))
+    assert _module_names(launched) <= as_lane
+    missed = _module_names(launched) - one
+    assert missed and all(name.startswith("_nxn_broadphase") for name in missed), missed
+
+
+@needs_warp
+def test_bench_kernels_sizes_lanes_as_the_run_would():
+    from dojo.bench.warp_modules import bench_kernels
+
+    figures = bench_kernels({"tasks": ["push_t"], "episodes": 2, "num_envs": 1, "backend": {"merge": False}})
+    assert [b["worlds"] for b in figures["per_bucket"].values()] == [1] * figures["buckets"]
+    figures = bench_kernels({"tasks": ["push_t"], "episodes": 2, "num_envs": 8, "backend": {"merge": False}})
+    assert sum(b["worlds"] for b in figures["per_bucket"].values()) == figures["episodes"] == 2

@@ -5,7 +5,7 @@ another, at the launch that first needs it. Which modules those are (and with wh
 compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs:
 `dojo bench kernels` counts them this way, to judge how many modules a change of the buckets' structures saves.
 
-How. One world of the bucket steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
+How. The bucket's model, as a lane of a given size holds it, steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
 block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch),
 `wp.capture_while` / `wp.capture_if` running their bodies once and Warp's native sorts and scans skipped
 (`NATIVE_PASSES`); Warp's own functions are back when it returns.
@@ -69,13 +69,19 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
     return stack
 
 
-def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, dict[str, int]]:
-    """On `device` (Warp's current device when None), one world of `bucket`'s model with the engine's contact and
-    row capacities: the kernels a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`)
+def recorded_tick(bucket: Bucket, device: str | None = None, size: int = 1) -> tuple[Launches, dict[str, int]]:
+    """On `device` (Warp's current device when None), `bucket`'s model as a lane of `size` worlds holds it (its
+    varying fields batched per world, `streams.batchable_fields`) with the engine's contact and row capacities: the
+    kernels a physics step, a whole forward and a lane's end-of-tick refresh (`streams.refresh`)
     launch (by module and block size: every module an engine of this bucket loads for its physics), and how many
     kernels (launches over non-empty grids, one solver iteration) each of the three launches, and so a lane's tick:
     its sub-steps and the refresh (besides its ~20 copies in and one restore per state field). One model and data
     serve all three records.
+
+    Why the lane's size: MuJoCo Warp specialises some kernels on how many rows a batched field has (the N-squared
+    broadphase of a bucket whose members differ in geom bounds), so a lane of 40 worlds loads another module than
+    one world does: recorded at one world, the cache compiled ahead missed 27 modules of the protocol's default run
+    on an H200 (2026-12-03), which the GPU compiled in 26.0 s.
 
     Why the counts: a lane's tick on the GPU is a graph of these launches, and where lanes are small their number
     weighs on its pace beside their arithmetic (README, speed); this counts a change to the tick before a GPU
@@ -83,7 +89,7 @@ def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, 
     import warp as wp
     from mujoco.mjx.third_party import mujoco_warp as mjw
 
-    from dojo.backends.mjx.streams import refresh
+    from dojo.backends.mjx.streams import batchable_fields, refresh
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
@@ -91,8 +97,8 @@ def recorded_tick(bucket: Bucket, device: str | None = None) -> tuple[Launches, 
     counts = {}
     contacts, rows = contact_capacity(bucket)
     with wp.ScopedDevice(device):
-        model = mjw.put_model(bucket.model)
-        data = mjw.make_data(bucket.model, nworld=1, naconmax=contacts, njmax=rows)
+        model = mjw.put_model(bucket.model, batch_sizes={name: size for name in batchable_fields(bucket.varying)[0]})
+        data = mjw.make_data(bucket.model, nworld=size, naconmax=contacts * size, njmax=rows)
         for part, run in (("step", lambda: mjw.step(model, data)), ("forward", lambda: mjw.forward(model, data)),
                           ("refresh", lambda: refresh(wp, mjw, model, data))):
             counted: list[Any] = []
