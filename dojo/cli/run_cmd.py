@@ -30,7 +30,7 @@ from dojo.evaluation.evaluate import evaluate, run_id_for
 from dojo.evaluation.policy_link import (PRIVILEGED_NOTE, device_rule_for, is_privileged, policy_config_for,
                                          policy_identity)
 from dojo.evaluation.recorder import EpisodeRecorder, record_cameras
-from dojo.evaluation.side_by_side import SharedProgress, run_side_by_side
+from dojo.evaluation.side_by_side import SharedProgress, run_in_process, run_side_by_side
 
 DEFAULT_PLAN_CACHE = Path(os.environ.get("DOJO_PLAN_CACHE", Path.home() / ".cache" / "robodojo" / "plans"))
 
@@ -138,8 +138,8 @@ def run_task(cfg: DictConfig) -> int:
     cameras = tuple(meta.cameras) + tuple(c for c in recorded if c not in meta.cameras)
     width, height, size_warning = image_size(meta, cfg.width, cfg.height)
     action_mode = meta.action_mode  # not the policy link itself: a Ray worker gets a copy of this factory
-    recorder_factory = (lambda: EpisodeRecorder(out_dir, recorded, action_mode=action_mode,
-                                                relative_to=store_path.parent)) if recorded else None
+    recorder_factory = (partial(EpisodeRecorder, out_dir, recorded, action_mode=action_mode,
+                                relative_to=store_path.parent) if recorded else None)  # pickles: a route's process
     try:
         with ResultsStore(store_path) as store:
             store.ensure_run(run_id, identity)
@@ -162,8 +162,9 @@ def run_task(cfg: DictConfig) -> int:
                         shared = SharedProgress(progress)
                         run_side_by_side(
                             [partial(_evaluate_route, routes, 0, policy=policy, store=store, progress=shared, **common)]
-                            + [partial(_evaluate_route_apart, routes, k, policy_cfg=policy_cfg, embodiment=embodiment,
-                                       store_path=store_path, progress=shared, **common)
+                            + [partial(run_in_process, partial(_evaluate_route_apart, routes, k, policy_cfg=policy_cfg,
+                                                               embodiment=embodiment, store_path=store_path, **common),
+                                       shared)
                                for k in range(1, len(routes))])
                     else:
                         for k in range(len(routes)):
@@ -209,8 +210,8 @@ def _evaluate_route(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop
 
 def _evaluate_route_apart(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop: Any, *,
                           policy_cfg: dict[str, Any], embodiment: str, store_path: Path, **shared: Any) -> int:
-    """`_evaluate_route` on a thread of its own (`side_by_side`), with a policy link and a results-store connection
-    of its own, as a launcher's worker has: a link is one conversation, an sqlite3 connection serves one thread."""
+    """`_evaluate_route` in a process of its own (`side_by_side`), with a policy link and a results-store connection
+    of its own, as a launcher's worker has."""
     from dojo.evaluation.policy_link import open_policy
     from dojo.evaluation.results_store import ResultsStore
 

@@ -110,6 +110,50 @@ def test_an_interrupt_on_the_first_route_stops_the_others_before_it_is_raised(qu
     assert ended == ["stopped"] and _recorded(store_path) == []
 
 
+ZERO = {"name": "zero", "url": None, "chunk_size": 4}
+
+
+def _job(queue, store_path: Path, policy: dict | None = None):
+    """The second of two CPU routes as `dojo run` hands one to its own process."""
+    from functools import partial
+
+    from dojo.cli.run_cmd import _evaluate_route_apart
+
+    routes = [({"name": "mujoco", "threads": 1}, queue[:2]), ({"name": "mujoco", "threads": 1}, queue[2:])]
+    meta = open_policy(ZERO, "arx_x5_bimanual").metadata
+    return partial(_evaluate_route_apart, routes, 1, policy_cfg=policy or ZERO, embodiment="arx_x5_bimanual",
+                   store_path=store_path, run_id="run", num_envs=2, rendering=(meta, (), (640, 480)), timeout=None,
+                   recorder_factory=None, on_device="off")
+
+
+def test_a_route_in_a_process_of_its_own_records_its_episodes_and_the_run_sees_them(queue, tmp_path) -> None:
+    from dojo.evaluation.side_by_side import run_in_process
+
+    store_path = tmp_path / "results.sqlite"
+    with ResultsStore(store_path) as store:
+        store.ensure_run("run", {})
+    with Progress(len(queue), mode="quiet") as progress:
+        assert run_in_process(_job(queue, store_path), progress, threading.Event()) == 2
+        assert progress.done == 2 and progress.snapshot()["interactions"] > 0
+    assert _recorded(store_path) == sorted((e.plan_hash, e.eval_seed, e.episode) for e in queue[2:])
+
+
+def test_a_route_process_is_stopped_by_the_run_and_its_error_is_the_runs(queue, tmp_path) -> None:
+    from dojo.evaluation.side_by_side import run_in_process
+
+    store_path = tmp_path / "results.sqlite"
+    with ResultsStore(store_path) as store:
+        store.ensure_run("run", {})
+    stop = threading.Event()
+    stop.set()  # another route failed before this one's first step
+    with pytest.raises(Stopped):
+        run_in_process(_job(queue, store_path), Progress(len(queue), mode="quiet"), stop)
+    assert _recorded(store_path) == []
+    with pytest.raises(ValueError, match="no_such_policy"):
+        run_in_process(_job(queue, store_path, {**ZERO, "name": "no_such_policy"}), Progress(4, mode="quiet"),
+                       threading.Event())
+
+
 SUITE = """kind: suite
 version: 1
 id: routed_pair
