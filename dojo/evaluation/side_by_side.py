@@ -34,8 +34,8 @@ from dojo.evaluation.evaluate import ProgressSink, Stopped
 JOIN_S = 60.0
 """How long a route's process is given to end after it was told to stop before it is terminated."""
 POLL_S = 0.2
-"""How often the thread watching a route's process looks at the stop event and at whether the process still lives
-while it has nothing to relay."""
+"""At most this long between two looks of the thread watching a route's process at the stop event, and, while it
+has nothing to relay, at whether the process still lives."""
 
 Route = Callable[[threading.Event], Any]
 """One route's evaluation, given the stop event it must pass to `evaluate`."""
@@ -128,11 +128,11 @@ def run_in_process(job: Callable[..., int], progress: ProgressSink, stop: thread
     process.start()
     try:
         while True:
+            if stop.is_set():
+                halt.set()
             try:
                 kind, value = messages.get(timeout=POLL_S)
             except queue.Empty:
-                if stop.is_set():
-                    halt.set()
                 if not process.is_alive():
                     raise RuntimeError(f"a route's process ended without a word (exit code {process.exitcode})")
                 continue
