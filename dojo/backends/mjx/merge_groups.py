@@ -53,9 +53,9 @@ bench's 84 plans in 47 separate buckets against 14 merged at growth 1.0 (`dojo b
 num_envs=N modes=[streams,merged_streams] backend.merge_growth=1.0 steps=20`): 1,200 environments 288.8k and
 360.8k physics steps/s (1.25x merged; 28.6 environments a group), 2,048 441.9k and 520.4k (1.18x; 48.8), 4,096
 722.7k and 735.6k (1.02x; 97.5); at 16,384 the separate buckets ran 1.48M and 9 merged at growth 2.0 600k
-(0.41x). So merging pays up to about 100 a group; the bound keeps to where it pays clearly. The protocol itself (`dojo run`, 850 plans, 1,200 environments, 42.5 per
-task and setting) ran 3,270-3,320 interactions/s merged at growth 1.0 (46 buckets) against 1,838-1,903 in its 141
-separate buckets (earlier that day, another H200 machine)."""
+(0.41x). So merging pays up to about 100 a group; the bound keeps to where it pays clearly. The protocol itself
+(`dojo run`, 850 plans, 1,200 environments, 42.5 per task and setting) ran 3,270-3,320 interactions/s merged at
+growth 1.0 (46 buckets) against 1,838-1,903 in its 141 separate buckets (earlier that day, another H200 machine)."""
 
 AUTO_GROWTH = 1.0
 """The growth `backend.merge=auto` merges with where `merge_growth` is not set: the fastest measured on the

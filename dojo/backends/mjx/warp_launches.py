@@ -5,10 +5,10 @@ another, at the launch that first needs it. Which modules those are (and with wh
 compiled variant) is a property of the bucket's model and capacities, and can be known before anything runs:
 `dojo bench kernels` counts them this way, to judge how many modules a change of the buckets' structures saves.
 
-How. The bucket's model, as a lane of a given size holds it, steps with `wp.launch` and `wp.launch_tiled` replaced by a recorder (the module and
-block size of each kernel launched over a non-empty grid: Warp loads no module for an empty launch),
-`wp.capture_while` / `wp.capture_if` running their bodies once and Warp's native sorts and scans skipped
-(`NATIVE_PASSES`); Warp's own functions are back when it returns.
+How. The bucket's model, as a lane of a given size holds it, steps with `wp.launch` and `wp.launch_tiled` replaced
+by a recorder (the module and block size of each kernel launched over a non-empty grid: Warp loads no module for an
+empty launch), `wp.capture_while` / `wp.capture_if` running their bodies once and Warp's native sorts and scans
+skipped (`NATIVE_PASSES`); Warp's own functions are back when it returns.
 Nothing is compiled and nothing is simulated. MuJoCo Warp's step is capturable in a CUDA graph, so it never reads
 the device between launches and the recorded sequence is the real one. Checked against an H100's kernel cache for
 the 24 simulation tasks (2026-11-28): 95 of the 96 kernel names recorded on Warp's CPU device were the modules
