@@ -21,11 +21,13 @@ plans (29 buckets) on the 2-core CI machine in 279.5 s beside other work (76 MB 
 that cache set up the 29 lanes in 24.2 s, compiling 2 modules itself, where an empty cache takes 128-178 s there.
 
 Scope. Warp writes CUBIN for a GPU whose driver is older than Warp's CUDA toolkit (warp-lang 1.19: CUDA 13.4) and
-PTX otherwise; these are CUBIN, so a machine with a newer driver compiles its own PTX. Two kinds of kernel are
-chosen at run time from what a recording of one world on Warp's CPU device cannot see, and the GPU still compiles
-them, one module each: a sparse-solver kernel whose block size follows the device under elliptic cones, and the
-N-squared broadphase of a bucket whose members differ in geom bounds, which MuJoCo Warp specialises on the number
-of worlds holding them (the lane's size).
+PTX otherwise; these are CUBIN, so a machine with a newer driver compiles its own PTX. A sparse-solver kernel whose
+block size follows the device under elliptic cones is chosen at run time from what a recording on Warp's CPU
+device cannot see, and the GPU still compiles it. The N-squared broadphase of a bucket whose members differ in geom
+bounds, which MuJoCo Warp specialises on the number of worlds holding them, is found where the recording is of a
+lane of the run's size (`dojo bench kernels` with the run's `num_envs`). The buckets themselves must be the run's:
+the same plans, settings and MuJoCo version (the protocol's 850 plans made 47 merged buckets on a CPU machine with
+MuJoCo 4.0.1 and 46 on an H200 host with 4.0.0, 2026-12-03, and the GPU compiled 17 modules of the difference).
 """
 
 from __future__ import annotations
