@@ -123,7 +123,7 @@ def run_task(cfg: DictConfig) -> int:
     try:  # a plan no backend runs, or policy.on_device=on where it cannot be, stops the run here
         routes = _routes(cfg, queue, quiet=cfg.progress == "jsonl")
         changed = _rule_changes_results(policy, routes, bool(recorded), on_device)
-        side_by_side = routes_side_by_side(cfg.routes) and len(routes) > 1
+        side_by_side = routes_side_by_side(cfg.routes)
     except BaseException:
         policy.close()
         raise
@@ -144,6 +144,7 @@ def run_task(cfg: DictConfig) -> int:
         with ResultsStore(store_path) as store:
             store.ensure_run(run_id, identity)
             finished = store.rows(run_id)
+            left = routes_left(routes, store.finished(run_id))
             if cfg.progress != "quiet":
                 _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id),
                                       timed_here=str(cfg.backend.name) == "mujoco")
@@ -158,16 +159,18 @@ def run_task(cfg: DictConfig) -> int:
                     common = dict(run_id=run_id, num_envs=int(cfg.num_envs), timeout=timeout,
                                   rendering=(meta, cameras, (width, height)), recorder_factory=recorder_factory,
                                   on_device=on_device)
-                    if side_by_side:
+                    if side_by_side and len(left) > 1:
                         shared = SharedProgress(progress)
+                        first, *others = left
                         run_side_by_side(
-                            [partial(_evaluate_route, routes, 0, policy=policy, store=store, progress=shared, **common)]
+                            [partial(_evaluate_route, routes, first, policy=policy, store=store, progress=shared,
+                                     **common)]
                             + [partial(run_in_process, partial(_evaluate_route_apart, routes, k, policy_cfg=policy_cfg,
                                                                embodiment=embodiment, store_path=store_path, **common),
                                        shared)
-                               for k in range(1, len(routes))])
+                               for k in others])
                     else:
-                        for k in range(len(routes)):
+                        for k in left:
                             _evaluate_route(routes, k, None, policy=policy, store=store, progress=progress, **common)
             rows = store.rows(run_id)
     finally:
@@ -193,6 +196,13 @@ def routes_side_by_side(value: Any) -> bool:
     if value not in ROUTES:
         raise ValueError(f"routes must be one of {', '.join(ROUTES)}, got {value!r}")
     return value == "side_by_side"
+
+
+def routes_left(routes: list[tuple[dict[str, Any], list[Any]]], finished: set[Any]) -> list[int]:
+    """The routes, by index, that still have an episode not in `finished` (the store's keys): a resumed run starts
+    no backend, and spawns no process, for a route whose episodes are all recorded."""
+    return [k for k, (_, episodes) in enumerate(routes)
+            if any((item.plan_hash, item.eval_seed, item.episode) not in finished for item in episodes)]
 
 
 def _evaluate_route(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop: Any, *, policy: Any, store: Any,

@@ -138,6 +138,23 @@ def test_a_route_in_a_process_of_its_own_records_its_episodes_and_the_run_sees_t
     assert _recorded(store_path) == sorted((e.plan_hash, e.eval_seed, e.episode) for e in queue[2:])
 
 
+def test_only_routes_with_episodes_left_run_so_a_resumed_run_spawns_no_process_for_a_finished_route(
+        queue, tmp_path) -> None:
+    from dojo.cli.run_cmd import routes_left
+
+    routes = [({"name": "mjx"}, queue[:2]), ({"name": "mujoco"}, queue[2:])]
+    keys = [(e.plan_hash, e.eval_seed, e.episode) for e in queue]
+    store_path = tmp_path / "results.sqlite"
+    with ResultsStore(store_path) as store:
+        store.ensure_run("run", {})
+        assert routes_left(routes, store.finished("run")) == [0, 1]
+        with Progress(len(queue), mode="quiet") as progress:
+            _route(queue[2:], store_path, progress)(threading.Event())  # the second route's episodes recorded
+        assert routes_left(routes, store.finished("run")) == [0]
+    assert routes_left(routes, set(keys[:3])) == [1]
+    assert routes_left(routes, set(keys)) == []
+
+
 def test_a_route_process_is_stopped_by_the_run_and_its_error_is_the_runs(queue, tmp_path) -> None:
     from dojo.evaluation.side_by_side import run_in_process
 

@@ -51,6 +51,7 @@ from mujoco import mjx
 from dojo.backends import actions as A
 from dojo.backends.base import (Backend, ChunkRule, HostBuffers, Observation, StepResult, checked_actions, envelope,
                                 resolve_ids)
+from dojo.backends.held_interrupt import interrupts_held
 from dojo.backends.mujoco.kinematics import RobotIndex
 from dojo.backends.predicate_program import init_memory, program_step
 from dojo.backends.predicate_state import gather_state
@@ -482,12 +483,13 @@ class MjxBackend(Backend):
         Why not every bucket's: each output is a copy of its own, and a protocol run's tick fetched some 280 (46
         buckets, 6 outputs) whether or not a bucket still held a running episode: 62 of its 613 s of steps on an
         H200 (2026-12-03, cProfile)."""
-        out = self._engine.tick(self._members, resets, stepping, inputs, self._slots.next_steps())
-        if self.impl == "warp":
-            self._engine.check_overflow()
-        read = set(self._slots.bucket[ids].tolist())
-        return jax.device_get([(o if names is None else {n: o[n] for n in names}) if k in read else {}
-                               for k, o in enumerate(out)])
+        with interrupts_held():  # a Ctrl-C inside the tick's FFI callbacks would hang the run's exit
+            out = self._engine.tick(self._members, resets, stepping, inputs, self._slots.next_steps())
+            if self.impl == "warp":
+                self._engine.check_overflow()
+            read = set(self._slots.bucket[ids].tolist())
+            return jax.device_get([(o if names is None else {n: o[n] for n in names}) if k in read else {}
+                                   for k, o in enumerate(out)])
 
     def step(self, actions: np.ndarray, env_ids: Sequence[int] | None = None, mode: str = "joint",
              observe: Sequence[int] | None = None) -> StepResult:

@@ -26,9 +26,9 @@ block size follows the device under elliptic cones is chosen at run time from wh
 device cannot see, and the GPU still compiles it. The N-squared broadphase of a bucket whose members differ in geom
 bounds, which MuJoCo Warp specialises on the number of worlds holding them, is found where the recording is of a
 lane of the run's size (`dojo bench kernels` with the run's `num_envs`). The buckets themselves must be the run's:
-the protocol's 850 plans made 47 merged buckets on the CI machine and 46 on an H200 host (2026-12-03; not the
-plans' order, threads, hash seed or MuJoCo 4.0.0 against 4.0.1: each gave 47 here), and the GPU compiled 17 modules
-of the difference.
+the protocol's 850 plans made 47 merged buckets on the CI machine and in a plain process on an H200 host, but 46
+in `dojo run` there (2026-12-03; not the plans' order, threads, hash seed, MuJoCo 4.0.0 against 4.0.1 or Python
+3.12 against 3.11), and the GPU compiled 17-24 modules of the difference.
 """
 
 from __future__ import annotations

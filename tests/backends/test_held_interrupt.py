@@ -1,0 +1,68 @@
+"""Ctrl-C held back over a backend's tick (`dojo.backends.held_interrupt`): delivered once the block ends, to the
+handler it would have reached, and nothing changes where Python has no handler or off the main thread."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from dojo.backends.held_interrupt import interrupts_held
+
+
+@pytest.fixture
+def python_sigint():
+    """Python's own SIGINT handler for the test (pytest-xdist's workers ignore SIGINT), restored after."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _sigint() -> None:
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(0.05)  # Python runs the handler at the next bytecode after the signal lands
+
+
+def test_a_sigint_inside_the_block_is_raised_once_the_block_has_ended(python_sigint) -> None:
+    ran = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_held():
+            _sigint()
+            ran.append("the rest of the block")
+    assert ran == ["the rest of the block"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt):  # and outside a block, Ctrl-C is Ctrl-C again
+        _sigint()
+
+
+def test_a_block_without_sigint_ends_quietly_and_a_handler_of_the_caller_gets_the_signal(python_sigint) -> None:
+    with interrupts_held():
+        pass
+    got = []
+    signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+    with interrupts_held():
+        _sigint()
+        assert got == []
+    assert got == [signal.SIGINT]
+
+
+def test_off_the_main_thread_or_with_sigint_ignored_the_block_runs_as_it_is() -> None:
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with interrupts_held():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+    seen = []
+
+    def worker() -> None:
+        with interrupts_held():
+            seen.append(signal.getsignal(signal.SIGINT))
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen == [signal.getsignal(signal.SIGINT)]
