@@ -144,9 +144,10 @@ def run_task(cfg: DictConfig) -> int:
         with ResultsStore(store_path) as store:
             store.ensure_run(run_id, identity)
             finished = store.rows(run_id)
-            left = routes_left(routes, store.finished(run_id))
+            done = store.finished(run_id)
+            left = routes_left(routes, done)
             if cfg.progress != "quiet":
-                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, store.finished(run_id),
+                _say_what_is_rendered(meta, cameras, (width, height), size_warning, queue, done,
                                       timed_here=str(cfg.backend.name) == "mujoco")
             with Progress(len(queue), mode=str(cfg.progress), finished=finished) as progress:
                 timeout = float(cfg.episode_timeout_s) if cfg.episode_timeout_s else None
