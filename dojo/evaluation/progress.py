@@ -128,6 +128,8 @@ class Progress:
         if self._live is not None:
             self._refresh(force=True)
             self._live.stop()
+            if not self._bar.console.is_terminal:  # rich ends the last frame with a newline on a terminal only:
+                self._bar.console.line()          # in a log file the next line ran on after the display's
         if self.mode == "jsonl":
             self._emit({"event": "summary", **self.snapshot()})
 

@@ -146,6 +146,7 @@ def test_rich_mode_draws_counts_and_dimensions(make_row):
     assert "1/3" in text
     assert "Long-Horizon 100.0% (1/1)" in text
     assert "interactions/s" in text
+    assert text.endswith("\n"), "in a log file, what is written next starts on a line of its own"
 
 
 def test_bad_arguments_are_rejected():
