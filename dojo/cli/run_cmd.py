@@ -26,6 +26,7 @@ from dojo.backends.registry import check_settings, factory_from_config
 
 from dojo.evaluation.camera_budget import budget_message, image_size, images_per_second
 from dojo.compiler.episodes import PlannedEpisode
+from dojo.evaluation.episode import EpisodeKey, episode_key
 from dojo.evaluation.evaluate import evaluate, run_id_for
 from dojo.evaluation.policy_link import (PRIVILEGED_NOTE, device_rule_for, is_privileged, policy_config_for,
                                          policy_identity)
@@ -199,11 +200,11 @@ def routes_side_by_side(value: Any) -> bool:
     return value == "side_by_side"
 
 
-def routes_left(routes: list[tuple[dict[str, Any], list[Any]]], finished: set[Any]) -> list[int]:
+def routes_left(routes: list[tuple[dict[str, Any], list[Any]]], finished: set[EpisodeKey]) -> list[int]:
     """The routes, by index, that still have an episode not in `finished` (the store's keys): a resumed run starts
     no backend, and spawns no process, for a route whose episodes are all recorded."""
     return [k for k, (_, episodes) in enumerate(routes)
-            if any((item.plan_hash, item.eval_seed, item.episode) not in finished for item in episodes)]
+            if any(episode_key(item) not in finished for item in episodes)]
 
 
 def _evaluate_route(routes: list[tuple[dict[str, Any], list[Any]]], k: int, stop: Any, *, policy: Any, store: Any,
@@ -263,14 +264,14 @@ def _evaluate_on_ray(cfg: DictConfig, backend: dict[str, Any], queue: list[Plann
 
 
 def _say_what_is_rendered(meta: Any, cameras: tuple[str, ...], size: tuple[int, int], warning: str | None,
-                          queue: list[PlannedEpisode], finished: set[tuple[str, int, int]], timed_here: bool) -> None:
+                          queue: list[PlannedEpisode], finished: set[EpisodeKey], timed_here: bool) -> None:
     """Before a run that renders cameras: which, at what size, and the most it can cost (camera_budget); with
     `timed_here` (the mujoco backend, which renders with MuJoCo's OpenGL renderer on this machine) also how long,
     timed here. The mjx backend renders on the device, where OpenGL may not even be installed."""
     console = Console(stderr=True, soft_wrap=True)  # one line each, whatever the terminal's width
     if warning:
         console.print(f"[yellow]{escape(warning)}[/yellow]")
-    todo = [q for q in queue if (q.plan_hash, q.eval_seed, q.episode) not in finished]
+    todo = [q for q in queue if episode_key(q) not in finished]
     if not cameras or not todo:
         return
     from dojo.compiler.plan import Plan

@@ -11,9 +11,12 @@ import json
 import math
 import re
 from dataclasses import asdict, dataclass, field
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from dojo.compiler.episodes import PlannedEpisode
 
 # A dimension is an id of the taxonomy (`dojo.compiler.taxonomy`); which ones are scored is scoring's business.
 DIMENSION_ID = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -27,6 +30,11 @@ class EpisodeKey(NamedTuple):
     plan_hash: str
     eval_seed: int
     episode: int
+
+
+def episode_key(item: PlannedEpisode) -> EpisodeKey:
+    """The results store's key of a queued episode."""
+    return EpisodeKey(item.plan_hash, item.eval_seed, item.episode)
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ from dojo.compiler.episodes import PlannedEpisode
 from dojo.compiler.plan import Plan
 
 from dojo.evaluation.chunks import ChunkQueue
-from dojo.evaluation.episode import EpisodeKey, EpisodeResult
+from dojo.evaluation.episode import EpisodeKey, EpisodeResult, episode_key
 from dojo.evaluation.policy_link import PolicyLink, device_rule_for
 from dojo.evaluation.recorder import SlotRecorder
 
@@ -164,7 +164,7 @@ def evaluate(queue: list[PlannedEpisode], backend_factory: Callable[[], Backend]
     a policy that keeps state per environment (frames, memory) would see two episodes under one id. `stop`: once
     set (by another loop of the run, `side_by_side`), the loop raises `Stopped` before its next step."""
     finished = store.finished(run_id)
-    todo = deque(item for item in queue if (item.plan_hash, item.eval_seed, item.episode) not in finished)
+    todo = deque(item for item in queue if episode_key(item) not in finished)
     if more is not None and len(todo) < num_envs:
         todo.extend(more(num_envs - len(todo)))
     if not todo:

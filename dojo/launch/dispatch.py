@@ -20,15 +20,10 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from dojo.evaluation.episode import EpisodeKey, EpisodeResult
+from dojo.evaluation.episode import EpisodeKey, EpisodeResult, episode_key
 
 if TYPE_CHECKING:
     from dojo.compiler.episodes import PlannedEpisode
-
-
-def episode_key(item: PlannedEpisode) -> EpisodeKey:
-    """The results store's key of a queued episode."""
-    return EpisodeKey(item.plan_hash, item.eval_seed, item.episode)
 
 
 @dataclass
