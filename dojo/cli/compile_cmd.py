@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -19,15 +18,13 @@ def compile_task(cfg: DictConfig) -> int:
 
     library = SpecLibrary.load([Path(p) for p in cfg.packs])
     suite = library.get("suite", cfg.suite.id)
-    started = time.perf_counter()
     seeds = list(cfg.seeds) if cfg.seeds is not None else None
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, Path(cfg.out), jobs=cfg.jobs, seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=list(cfg.tasks) if cfg.tasks is not None else None)
-    seconds = time.perf_counter() - started
-    per_plan = seconds / stats.compiled if stats.compiled else 0.0
-    print(f"{suite.id}: {stats.plans} plans ({stats.compiled} compiled in {seconds:.1f} s, "
-          f"{per_plan * 1000:.0f} ms each; {stats.cached} reused) -> {stats.index}")
+    print(stats.summary(suite.id))
+    if note := stats.compiler_note():
+        print(note)
     return 0
 
 

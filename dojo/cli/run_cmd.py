@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from functools import partial
 from pathlib import Path
 from collections.abc import Callable
@@ -101,6 +102,7 @@ def run_task(cfg: DictConfig) -> int:
     demos = load_demo_lengths(horizons_file(cfg.horizons))
     stats = compile_suite(library, suite, plan_dir, jobs=cfg.jobs, seeds=seeds, episodes=cfg.episodes,
                           demo_lengths=demos, tasks=tasks)
+    _say_compiled(stats, suite.id)
     queue = list(stats.episodes)
     hidden = _hidden_seeds(cfg, suite)
     if hidden:
@@ -108,6 +110,7 @@ def run_task(cfg: DictConfig) -> int:
         count = suite.data["verification"].get("episodes", 10)
         hidden_stats = compile_suite(library, suite, hidden_dir, jobs=cfg.jobs, seeds=hidden, episodes=count,
                                      demo_lengths=demos, tasks=tasks, split="hidden")
+        _say_compiled(hidden_stats, f"{suite.id} (hidden layouts)")
         queue += hidden_stats.episodes
 
     embodiment = library.get("task", queue[0].task).data["embodiment"] if queue else "arx_x5_bimanual"
@@ -186,6 +189,17 @@ def run_task(cfg: DictConfig) -> int:
         write_report([store_path], report_path, report_path.with_suffix(".html"), run_ids={run_id}, taxonomy=taxonomy)
         print(f"report: {report_path} and {report_path.with_suffix('.html')}")
     return 0
+
+
+def _say_compiled(stats: Any, label: str) -> None:
+    """On stderr, where plans were compiled for the run (`CompileStats.summary`), and why a folder's plans were
+    compiled again (`compiler_note`): a run that only reuses plans says nothing, and one that compiles waits for
+    it, so the wait gets its reason (a folder compiled elsewhere, by another install, was compiled again silently)."""
+    if not stats.compiled:
+        return
+    print(stats.summary(label), file=sys.stderr, flush=True)
+    if note := stats.compiler_note():
+        print(note, file=sys.stderr, flush=True)
 
 
 ROUTES = ("side_by_side", "in_turn")

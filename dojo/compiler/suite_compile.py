@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import time
 from collections.abc import Collection, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -143,6 +144,27 @@ class CompileStats:
     cached: int
     index: str
     episodes: tuple[PlannedEpisode, ...] = ()
+    seconds: float = 0.0
+    replaced_compiler: str | None = None
+    """The compiler whose plans the folder's index listed before, where another than this one (`compiler_id`)."""
+
+    def summary(self, label: str) -> str:
+        """What was compiled and what reused, for the console."""
+        each = f", {1000 * self.seconds / self.compiled:.0f} ms each" if self.compiled else ""
+        return (f"{label}: {self.plans} plans ({self.compiled} compiled in {self.seconds:.1f} s{each}; "
+                f"{self.cached} reused) -> {self.index}")
+
+    def compiler_note(self) -> str | None:
+        """Why plans that were in the folder were compiled again, where they were: a plan's name carries the
+        compiler that made it (`plan_hash` hashes `compiler_id`, MuJoCo's version included), so a folder compiled
+        by another install serves none of its plans here; nor do kernels compiled ahead for its buckets
+        (`dojo bench kernels`), and the new plans may bucket otherwise. Found on an H200 (2026-12-03): a folder
+        compiled with MuJoCo 4.0.1 was compiled again, silently, by a GPU host with 4.0.0."""
+        if self.replaced_compiler is None or not self.compiled:
+            return None
+        return (f"{self.compiled} plans compiled again: {Path(self.index).parent} held plans of "
+                f"'{self.replaced_compiler}', this is '{compiler_id()}' (a plan is named by what compiled it; "
+                "plans and kernels compiled ahead carry over only between installs with the same versions)")
 
 
 def plan_files(folder: Path) -> list[Path]:
@@ -164,7 +186,10 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int | s
     carry the episodes, typed, in protocol order, for the evaluation loop (the index is for people and tools).
     `demo_lengths` (task id -> lengths, from `dojo collect`) set the tasks' `auto` horizons; `tasks` keeps only
     those of the suite's tasks; `split` is the one the episodes are scored in."""
+    started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
+    index = out / "index.json"
+    before = _index_compiler(index)
     entries, planned, todo, queued = [], [], [], set()
     demos = demo_lengths or {}
     specs = {task.id: task for task, _ in library.suite_tasks(suite)}
@@ -178,10 +203,20 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int | s
             queued.add(path)
             todo.append((task.id, task.package, episode.setting, episode.scene_seed, str(path)))
     compile_plan_files(library, todo, jobs=jobs, demo_lengths=demos, progress=progress)
-    index = out / "index.json"
     tmp = index.with_suffix(".tmp")
     tmp.write_text(json.dumps({"format": INDEX_FORMAT, "suite": suite.id, "compiler": compiler_id(),
                                "plans": entries}, indent=1))
     os.replace(tmp, index)
     return CompileStats(plans=len(entries), compiled=len(todo), cached=len(entries) - len(todo), index=str(index),
-                        episodes=tuple(planned))
+                        episodes=tuple(planned), seconds=time.perf_counter() - started,
+                        replaced_compiler=before if before != compiler_id() else None)
+
+
+def _index_compiler(index: Path) -> str | None:
+    """The compiler an existing plan index names (None without a readable one: the index is this tool's own
+    file, rewritten by every compile, so one that does not parse is replaced, not reported)."""
+    try:
+        found = json.loads(index.read_text()).get("compiler")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return found if isinstance(found, str) else None

@@ -180,3 +180,32 @@ def _check_settles(library: SpecLibrary, task_id: str, setting: str, seed: int) 
         assert tilt < MAX_TILT_DEG, f"{where}: {name} tipped over by {tilt:.0f} degrees"
     depth = min((data.contact[i].dist for i in range(data.ncon)), default=0.0)
     assert depth > -0.005, f"{where}: contacts interpenetrate by {-depth * 1000:.1f} mm"
+
+
+def test_a_folder_compiled_by_another_install_is_compiled_again_and_says_so(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Plans are named by what compiled them (MuJoCo's version included): a folder compiled with another MuJoCo
+    serves none of its plans, and the stats say why every plan was compiled again, naming both compilers."""
+    from dojo.compiler import plan as plan_module
+
+    library = SpecLibrary.load([PACK])
+    suite = library.get("suite", "mini_test")
+    here = plan_module.compiler_id()
+    plan_module.compiler_id.cache_clear()
+    monkeypatch.setattr(plan_module.mujoco, "__version__", "0.0.1")
+    elsewhere = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
+    assert elsewhere.compiler_note() is None  # a fresh folder: nothing replaced
+    assert plan_module.compiler_id() != here
+    monkeypatch.undo()
+    plan_module.compiler_id.cache_clear()
+    assert plan_module.compiler_id() == here
+
+    again = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
+    assert (again.compiled, again.cached) == (2, 0)
+    assert again.replaced_compiler == here.replace(f"mujoco {mujoco.__version__}", "mujoco 0.0.1")
+    note = again.compiler_note()
+    assert note is not None and "2 plans compiled again" in note and "mujoco 0.0.1" in note and here in note
+    assert "2 plans (2 compiled in" in again.summary("mini_test")
+
+    same = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
+    assert (same.compiled, same.replaced_compiler, same.compiler_note()) == (0, None, None)

@@ -42,6 +42,7 @@ def test_run_records_every_episode_and_writes_the_report(tmp_path: Path) -> None
         assert {row.backend for row in store.rows()} == {"mujoco"}  # each row names the backend that ran it
     assert "overall" in result.stdout and "stack_test" in result.stdout
     assert (tmp_path / "report.json").is_file() and (tmp_path / "report.html").is_file()
+    assert "mini_test: 6 plans (6 compiled in" in result.stderr  # the wait for compiling, said
 
 
 def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
@@ -67,6 +68,7 @@ def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
 
     resumed = dojo(*BASE, f"results={store}", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr
+    assert "compiled in" not in resumed.stderr  # every plan reused: nothing to say
     after = episodes(store)
     assert len(after) == 6
     assert all(after[key] == value for key, value in partial.items())  # finished episodes were not re-run
