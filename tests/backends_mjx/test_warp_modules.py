@@ -46,9 +46,23 @@ def test_recording_leaves_warp_as_it_was():
 
     from dojo.bench.warp_modules import bucket_modules
 
-    launch, capture_while = warp.launch, warp.capture_while
+    launch, capture_while, suggested = warp.launch, warp.capture_while, warp.get_suggested_block_size
     bucket_modules(make_buckets([toy_plan()])[0])
     assert warp.launch is launch and warp.capture_while is capture_while
+    assert warp.get_suggested_block_size is suggested
+
+
+@needs_warp
+def test_a_kernel_whose_occupancy_is_asked_for_is_recorded_at_its_default_block_size_too():
+    """On a GPU, `wp.get_suggested_block_size` loads the kernel's module at its default block size to ask the driver,
+    and the N-squared broadphase then launches at its model's own (128): the GPU compiles both variants, so both are
+    recorded, and compiled ahead. Without the first, an H200 compiled 10 broadphase modules of the protocol's run
+    that the cache compiled ahead lacked (2026-12-03)."""
+    from dojo.backends.mjx.warp_launches import recorded_tick
+
+    launches, _ = recorded_tick(make_buckets([toy_plan(task="a"), toy_plan(task="b", items=("ball",))])[1], "cpu", 4)
+    sizes = {size for name, size in launches if name.startswith("_nxn_broadphase")}
+    assert None in sizes and len(sizes) == 2, sizes
 
 
 @needs_warp

@@ -25,10 +25,13 @@ PTX otherwise; these are CUBIN, so a machine with a newer driver compiles its ow
 block size follows the device under elliptic cones is chosen at run time from what a recording on Warp's CPU
 device cannot see, and the GPU still compiles it. The N-squared broadphase of a bucket whose members differ in geom
 bounds, which MuJoCo Warp specialises on the number of worlds holding them, is found where the recording is of a
-lane of the run's size (`dojo bench kernels` with the run's `num_envs`). The buckets themselves must be the run's:
-the protocol's 850 plans made 47 merged buckets on the CI machine and in a plain process on an H200 host, but 46
-in `dojo run` there (2026-12-03; not the plans' order, threads, hash seed, MuJoCo 4.0.0 against 4.0.1 or Python
-3.12 against 3.11), and the GPU compiled 17-24 modules of the difference.
+lane of the run's size (`dojo bench kernels` with the run's `num_envs`); the variant its occupancy query loads, at
+the module's default block size, where the recorder records that query (`warp_launches`: 10 such modules were
+compiled on an H200 at the start of the protocol's run, 2026-12-03, before it did). The buckets themselves must be
+the run's, and so must the plans: a plan is named by its compiler, MuJoCo's version included, and a GPU host with
+MuJoCo 4.0.0 compiled the 4.0.1 plans folder again under new names, which bucketed into 46 where the folder's own
+plans make 47 (2026-12-03); with the same MuJoCo on both, the GPU made the same 47 buckets and compiled 11 modules
+(the 10 broadphase variants and the sparse-solver kernel) where it had compiled 24.
 """
 
 from __future__ import annotations

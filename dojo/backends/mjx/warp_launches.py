@@ -7,7 +7,8 @@ compiled variant) is a property of the bucket's model and capacities, and can be
 
 How. The bucket's model, as a lane of a given size holds it, steps with `wp.launch` and `wp.launch_tiled` replaced
 by a recorder (the module and block size of each kernel launched over a non-empty grid: Warp loads no module for an
-empty launch), `wp.capture_while` / `wp.capture_if` running their bodies once and Warp's native sorts and scans
+empty launch), `wp.capture_while` / `wp.capture_if` running their bodies once, `wp.get_suggested_block_size`
+recording the module at its default block size (what that call loads on a GPU) and Warp's native sorts and scans
 skipped (`NATIVE_PASSES`); Warp's own functions are back when it returns.
 Nothing is compiled and nothing is simulated. MuJoCo Warp's step is capturable in a CUDA graph, so it never reads
 the device between launches and the recorded sequence is the real one. Checked against an H100's kernel cache for
@@ -51,6 +52,14 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
             if counted is not None:
                 counted.append(kernel)
 
+    def suggested_block_size(kernel: Any, device: Any = None) -> tuple[int, int]:
+        """On a GPU, Warp answers this by loading the kernel's module at its default block size to ask the driver
+        for its occupancy, a variant the launch that follows may not use (the N-squared broadphase launches at
+        its model's own block size): recorded, that default variant is compiled ahead too. The answer is the
+        CPU's, as Warp's own call here would give."""
+        launches[kernel.module.name, None] = kernel.module
+        return 1, 1
+
     def capture_while(condition: Any, while_body: Callable[..., None], **kwargs: Any) -> None:
         while_body(**kwargs)
 
@@ -62,7 +71,7 @@ def _recording(wp: Any, launches: Launches, counted: list[Any] | None = None) ->
 
     stack = ExitStack()
     for name, stand_in in (("launch", launch), ("launch_tiled", launch), ("capture_while", capture_while),
-                           ("capture_if", capture_if)):
+                           ("capture_if", capture_if), ("get_suggested_block_size", suggested_block_size)):
         stack.enter_context(mock.patch.object(wp, name, stand_in))
     for name in NATIVE_PASSES:
         stack.enter_context(mock.patch.object(wp.utils, name, lambda *args, **kwargs: None))
