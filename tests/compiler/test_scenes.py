@@ -191,13 +191,15 @@ def test_a_folder_compiled_by_another_install_is_compiled_again_and_says_so(
     library = SpecLibrary.load([PACK])
     suite = library.get("suite", "mini_test")
     here = plan_module.compiler_id()
-    plan_module.compiler_id.cache_clear()
-    monkeypatch.setattr(plan_module.mujoco, "__version__", "0.0.1")
-    elsewhere = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
-    assert elsewhere.compiler_note() is None  # a fresh folder: nothing replaced
-    assert plan_module.compiler_id() != here
-    monkeypatch.undo()
-    plan_module.compiler_id.cache_clear()
+    plan_module.compiler_id.cache_clear()  # cached: the other install's id is computed afresh, and forgotten after
+    try:
+        with monkeypatch.context() as elsewhere_install:
+            elsewhere_install.setattr(plan_module.mujoco, "__version__", "0.0.1")
+            elsewhere = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
+            assert elsewhere.compiler_note() is None  # a fresh folder: nothing replaced
+            assert plan_module.compiler_id() != here
+    finally:
+        plan_module.compiler_id.cache_clear()
     assert plan_module.compiler_id() == here
 
     again = compile_suite(library, suite, tmp_path / "plans", seeds=[0], episodes=2)
