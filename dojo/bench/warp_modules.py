@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from collections import Counter
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from dojo.backends.mjx.batch import contact_capacity
@@ -108,6 +109,7 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
                            "ships inside mujoco-mjx") from None
     backend = cfg.get("backend") or {}
     plans, elsewhere = mjx_plans(load_plans(cfg), backend)
+    compiler = plans_compiler(cfg.get("plans"))
     # as `dojo run` on a GPU without cameras (physics on streams) with `num_envs` environments would bucket them
     slots = min(int(cfg.get("num_envs") or len(plans)), len(plans))
     merge, growth, _ = choose_merge(*merge_settings(backend), True, slots, task_groups(plans))
@@ -119,9 +121,27 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     log.info("%d plans in %d buckets", len(plans), len(buckets))
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
             "run_on_mujoco": elsewhere, "merge": merge, "growth": growth if math.isfinite(growth) else "inf",
-            "dof_quantum": quantum,
+            "dof_quantum": quantum, "plans_compiler": compiler,
             "buckets": len(buckets), "warp": version("warp-lang"), "mujoco_mjx": version("mujoco-mjx"),
             **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1), sizes)}
+
+
+def plans_compiler(folder: str | None) -> str:
+    """The compiler the plans are named by: the folder's index's (`dojo compile`'s output), else this install's.
+    Where the two differ, say so: a GPU run reuses the folder's plans, and so finds the kernels compiled here for
+    their buckets, only where its install is the plans' compiler; one like this install would compile them again
+    under other names, which may bucket otherwise (a GPU with MuJoCo 4.0.0 made 46 buckets of the protocol's plans
+    compiled with 4.0.1, and compiled 24 modules the cache lacked, 2026-12-03)."""
+    from dojo.compiler.plan import compiler_id
+    from dojo.compiler.suite_compile import index_compiler
+
+    here = compiler_id()
+    found = index_compiler(Path(folder)) if folder else None
+    if found is not None and found != here:
+        log.warning("plans=%s were compiled by '%s', this install is '%s': the kernels compiled here serve a GPU "
+                    "run whose install is the plans' (with this warp-lang and mujoco-mjx); one like this install "
+                    "would compile the plans again and may bucket them otherwise", folder, found, here)
+    return found or here
 
 
 def mjx_plans(plans: Sequence[Any], settings: Mapping[str, Any]) -> tuple[list[Any], dict[str, int]]:

@@ -189,7 +189,7 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int | s
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     index = out / "index.json"
-    before = _index_compiler(index)
+    before = index_compiler(out)
     entries, planned, todo, queued = [], [], [], set()
     demos = demo_lengths or {}
     specs = {task.id: task for task, _ in library.suite_tasks(suite)}
@@ -212,11 +212,11 @@ def compile_suite(library: SpecLibrary, suite: Spec, out: Path, *, jobs: int | s
                         replaced_compiler=before if before != compiler_id() else None)
 
 
-def _index_compiler(index: Path) -> str | None:
-    """The compiler an existing plan index names (None without a readable one: the index is this tool's own
-    file, rewritten by every compile, so one that does not parse is replaced, not reported)."""
+def index_compiler(folder: Path) -> str | None:
+    """The compiler (`compiler_id`) that the plan index in `folder` names, None without a readable one (the index
+    is this tool's own file, rewritten by every compile: one that does not parse is replaced, not reported)."""
     try:
-        found = json.loads(index.read_text()).get("compiler")
+        found = json.loads((folder / "index.json").read_text()).get("compiler")
     except (OSError, ValueError, AttributeError):
         return None
     return found if isinstance(found, str) else None

@@ -171,3 +171,24 @@ def test_bench_kernels_sizes_lanes_as_the_run_would():
     assert [b["worlds"] for b in figures["per_bucket"].values()] == [1] * figures["buckets"]
     figures = bench_kernels({"tasks": ["push_t"], "episodes": 2, "num_envs": 8, "backend": {"merge": False}})
     assert sum(b["worlds"] for b in figures["per_bucket"].values()) == figures["episodes"] == 2
+
+
+def test_the_kernels_name_the_plans_compiler_and_warn_where_it_is_not_this_installs(tmp_path, caplog):
+    """Kernels compiled ahead serve a GPU run only where it reuses the plans, so where its install is the one the
+    plans are named by: the figures name it, and a folder of another install's plans is said to be one."""
+    import json
+    import logging
+
+    from dojo.bench.warp_modules import plans_compiler
+    from dojo.compiler.plan import compiler_id
+
+    assert plans_compiler(None) == compiler_id()  # plans compiled by the bench itself
+    (tmp_path / "index.json").write_text(json.dumps({"compiler": compiler_id()}))
+    with caplog.at_level(logging.WARNING):
+        assert plans_compiler(str(tmp_path)) == compiler_id()
+    assert not caplog.records
+    other = compiler_id().replace("mujoco ", "mujoco 0.0.1-not-")
+    (tmp_path / "index.json").write_text(json.dumps({"compiler": other}))
+    with caplog.at_level(logging.WARNING):
+        assert plans_compiler(str(tmp_path)) == other
+    assert any(other in r.getMessage() and "compile the plans again" in r.getMessage() for r in caplog.records)
