@@ -126,9 +126,10 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
             **kernel_figures(buckets, cfg.get("arch"), int(cfg.get("jobs") or 1), sizes)}
 
 
-def plans_compiler(folder: str | None) -> str:
-    """The compiler the plans are named by: the folder's index's (`dojo compile`'s output), else this install's.
-    Where the two differ, say so: a GPU run reuses the folder's plans, and so finds the kernels compiled here for
+def plans_compiler(folder: str | None) -> str | None:
+    """The compiler the plans are named by: the folder's index's (`dojo compile`'s output; None for a folder of plan
+    files without one), or this install's for plans the bench compiled itself.
+    Where the folder's is not this install's, say so: a GPU run reuses the folder's plans, and so finds the kernels compiled here for
     their buckets, only where its install is the plans' compiler; one like this install would compile them again
     under other names, which may bucket otherwise (a GPU with MuJoCo 4.0.0 made 46 buckets of the protocol's plans
     compiled with 4.0.1, and compiled 24 modules the cache lacked, 2026-12-03)."""
@@ -136,12 +137,14 @@ def plans_compiler(folder: str | None) -> str:
     from dojo.compiler.suite_compile import index_compiler
 
     here = compiler_id()
-    found = index_compiler(Path(folder)) if folder else None
+    if not folder:
+        return here
+    found = index_compiler(Path(folder))
     if found is not None and found != here:
         log.warning("plans=%s were compiled by '%s', this install is '%s': the kernels compiled here serve a GPU "
                     "run whose install is the plans' (with this warp-lang and mujoco-mjx); one like this install "
                     "would compile the plans again and may bucket them otherwise", folder, found, here)
-    return found or here
+    return found
 
 
 def mjx_plans(plans: Sequence[Any], settings: Mapping[str, Any]) -> tuple[list[Any], dict[str, int]]:

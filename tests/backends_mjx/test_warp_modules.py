@@ -183,6 +183,7 @@ def test_the_kernels_name_the_plans_compiler_and_warn_where_it_is_not_this_insta
     from dojo.compiler.plan import compiler_id
 
     assert plans_compiler(None) == compiler_id()  # plans compiled by the bench itself
+    assert plans_compiler(str(tmp_path)) is None  # plan files without an index: not known
     (tmp_path / "index.json").write_text(json.dumps({"compiler": compiler_id()}))
     with caplog.at_level(logging.WARNING):
         assert plans_compiler(str(tmp_path)) == compiler_id()
