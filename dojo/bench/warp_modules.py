@@ -128,10 +128,10 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
 
 def plans_compiler(folder: str | None) -> str | None:
     """The compiler the plans are named by: the folder's index's (`dojo compile`'s output; None for a folder of plan
-    files without one), or this install's for plans the bench compiled itself.
-    Where the folder's is not this install's, say so: a GPU run reuses the folder's plans, and so finds the kernels compiled here for
-    their buckets, only where its install is the plans' compiler; one like this install would compile them again
-    under other names, which may bucket otherwise (a GPU with MuJoCo 4.0.0 made 46 buckets of the protocol's plans
+    files without one), or this install's for plans the bench compiled itself. Where the folder's is not this
+    install's, say so: a GPU run reuses the folder's plans, and so finds the kernels compiled here for their
+    buckets, only where its install is the plans' compiler; one like this install would compile them again under
+    other names, which may bucket otherwise (a GPU with MuJoCo 4.0.0 made 46 buckets of the protocol's plans
     compiled with 4.0.1, and compiled 24 modules the cache lacked, 2026-12-03)."""
     from dojo.compiler.plan import compiler_id
     from dojo.compiler.suite_compile import index_compiler
