@@ -97,6 +97,25 @@ def test_padding_groups_keep_each_bucket_within_the_growth_bound():
     assert [len(g) for g in padding_groups([plans[0], small], 0.5)] == [2]
 
 
+def test_plans_compiled_by_another_install_pad_and_merge_as_before():
+    """Plan hashes cover the compiler's and MuJoCo's versions, so another install names the same episodes otherwise;
+    where plans tie, the grouping must follow task, setting and seed, not the hash. Three plans of one size whose
+    clutter overlaps in a chain (1.0+1.1, 1.1+1.2, 1.2+1.3): at growth 0.4 a plan pads with one neighbour (25 DoFs
+    against its own 19), never with both (31), so whichever comes first decides the groups."""
+    plans = [mesh_plan(seed, scales) for seed, scales in enumerate([(1.0, 1.1), (1.2, 1.1), (1.2, 1.3)])]
+    renamed = [dataclasses.replace(p, hash=f"{9 - p.seed}-other-install") for p in plans]  # the order reversed
+
+    def seeds(groups: list[list[Plan]]) -> list[list[int]]:
+        return sorted(sorted(p.seed for p in g) for g in groups)
+
+    assert seeds(padding_groups(plans, 0.4)) == seeds(padding_groups(renamed, 0.4)) == [[0, 1], [2]]
+    buckets = {name: seeds([[m.plan for m in b.members] for b in make_buckets(some, growth=0.4)])
+               for name, some in (("plans", plans), ("renamed", renamed))}
+    assert buckets["plans"] == buckets["renamed"] == [[0, 1], [2]]
+    # merged, every object is a slot and the three fit one bucket, whichever install compiled them
+    assert [len(b.members) for b in make_buckets(renamed, merge=True, growth=0.4)] == [3]
+
+
 def test_plans_whose_frames_differ_are_never_padded_together():
     plans = [mesh_plan(0, (1.0,)), mesh_plan(1, (1.0,), block="sphere")]
     assert len(padding_groups(plans, math.inf)) == 2

@@ -338,11 +338,12 @@ def _units(by_task: dict[str, list[Plan]], robot: str, growth: float,
     units: list[Unit] = []
     unit_of: dict[str, tuple[str, Compiled]] = {}
     for task, alike, compiling in _unit_groups(by_task, robot, growth, compiler):
-        # Named by content (its least plan hash), not by its place in the plans' order: `cluster` breaks ties
-        # by these keys, so that the same plans in another order give the same clusters.
-        first = min(plan.hash for plan in alike)
+        # Named by its least plan (`Plan.sort_key`), not by its place in the plans' order: `cluster` breaks ties
+        # by these keys, so that the same plans in another order, or compiled by another install, give the same
+        # clusters.
+        first = min(plan.sort_key for plan in alike)
         for signature, compiled in compiling.by_signature().items():
-            key = f"{task}:{first[:16]}:{signature[:16]}"
+            key = f"{first}:{signature[:16]}"
             units.append(Unit.measure(key, [pp.plan for pp, _ in compiled], *compiled[0]))
             unit_of[key] = signature, compiled
     return units, unit_of

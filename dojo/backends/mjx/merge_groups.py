@@ -135,7 +135,7 @@ class Unit:
         per_slot = {key: xml_cost(body) for key, body in slotted}
         slots = dict(Counter(key for key, _ in slotted))
         outside, inside = xml_cost(frame.find("worldbody")), _total(slots, per_slot)
-        return cls(plan.hash, (plan,), _plus(outside, inside), outside, slots, per_slot)
+        return cls(plan.sort_key, (plan,), _plus(outside, inside), outside, slots, per_slot)
 
 
 _JOINT_DOFS = {"free": 6, "ball": 3, "slide": 1, "hinge": 1}

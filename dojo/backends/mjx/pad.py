@@ -344,9 +344,10 @@ def pad_group(plans: Sequence[Plan], name: str, every_object: bool = False,
     need: Counter[str] = Counter()
     templates: dict[str, ET.Element] = {}
     inner: dict[str, list[tuple[str, str]]] = {}  # key -> its excludes, relative to the slot
-    # Plans by hash, not in the given order: a key's template (its first body) gives its parked copies and its
-    # sites' sizes (static), so the same plans in another order must pick the same one.
-    for k in sorted(range(len(plans)), key=lambda k: plans[k].hash):
+    # Plans by `Plan.sort_key`, not in the given order: a key's template (its first body) gives its parked copies
+    # and its sites' sizes (static), so the same plans in another order, or compiled by another install, must pick
+    # the same one.
+    for k in sorted(range(len(plans)), key=lambda k: plans[k].sort_key):
         bodies, ks, ex = slotted[k], keys[k], excludes[k]
         for key, count in Counter(ks).items():
             need[key] = max(need[key], count)
