@@ -100,6 +100,7 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.backends.mjx import merge_settings
     from dojo.backends.mjx.merge_groups import choose_merge, task_groups
+    from dojo.backends.mjx.slots import bucket_rows
     from dojo.bench.sim_bench import load_plans
 
     try:
@@ -115,9 +116,8 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     merge, growth, _ = choose_merge(*merge_settings(backend), True, slots, task_groups(plans))
     quantum = int(cfg.get("dof_quantum") or 1)
     buckets = [round_bucket(b, quantum) for b in make_buckets(plans, merge=merge, growth=growth)]
-    # and size their lanes as its backend does on one GPU: a bucket gets a row for each of its plans the slots can
-    # hold at once (`MjxBackend.load`)
-    sizes = [min(slots, len(b.members)) for b in buckets]
+    # and size their lanes as its backend does on one GPU (`MjxBackend.load`)
+    sizes = [bucket_rows(slots, len(b.members)) for b in buckets]
     log.info("%d plans in %d buckets", len(plans), len(buckets))
     return {"what": "kernels", "tasks": sorted({p.task for p in plans}), "episodes": len(plans),
             "run_on_mujoco": elsewhere, "merge": merge, "growth": growth if math.isfinite(growth) else "inf",

@@ -109,3 +109,11 @@ def test_stepping_an_ended_slot_is_refused_naming_a_few_of_them():
     table.restart(ids[:19])
     with pytest.raises(EpisodeDone, match=r"ended in 1 slot\(s\) \{19: 'horizon'\} \(slot"):
         table.refuse_ended(ids)
+
+
+def test_a_bucket_gets_a_row_for_each_plan_the_slots_can_hold_and_for_each_slot_that_plays_one():
+    from dojo.backends.mjx.slots import bucket_rows
+
+    assert bucket_rows(slots=8, members=3) == 3  # every plan of the bucket can run at once
+    assert bucket_rows(slots=2, members=50) == 2  # no more than the slots can hold at once
+    assert bucket_rows(slots=4, members=1, taken=4) == 4  # one plan in four slots (replicates) takes four rows

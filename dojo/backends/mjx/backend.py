@@ -69,7 +69,7 @@ from dojo.backends.mjx.merge_groups import choose_merge, task_groups
 from dojo.backends.mjx.observations import StepObservations
 from dojo.backends.mjx.render import CpuRenderer, RenderConfig, observation_images
 from dojo.backends.mjx.sharding import Placement, local_devices
-from dojo.backends.mjx.slots import FREE, SlotTable
+from dojo.backends.mjx.slots import FREE, SlotTable, bucket_rows
 
 log = logging.getLogger(__name__)
 
@@ -407,7 +407,7 @@ class MjxBackend(Backend):
         taken = [0] * len(self._buckets)  # rows each bucket's first slots take
         for s, k in enumerate(buckets):
             rows[s], taken[k] = taken[k], taken[k] + 1
-        capacity = [self.placement.padded(max(taken[k], min(len(plans), len(bucket.members))))
+        capacity = [self.placement.padded(bucket_rows(len(plans), len(bucket.members), taken[k]))
                     for k, bucket in enumerate(self._buckets)]
         self._slots = SlotTable(plans, buckets, rows, capacity)
         self._members = [np.zeros(size, np.int32) for size in capacity]

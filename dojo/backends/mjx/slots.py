@@ -23,6 +23,14 @@ FREE = -1
 """A bucket row no slot occupies (`SlotTable.rows`)."""
 
 
+def bucket_rows(slots: int, members: int, taken: int = 0) -> int:
+    """The rows a bucket needs for a whole run of `slots` slots: one for each of its `members` (plans) the slots
+    can hold at once, so that any refill finds a free row and the program compiled at load serves to the end; and
+    at least the `taken` rows its first slots occupy (one plan may play in several slots). `dojo bench kernels`
+    sizes its lanes by this rule too, since MuJoCo Warp specialises some kernels on a lane's number of worlds."""
+    return max(taken, min(slots, members))
+
+
 class _Read:
     """The stage and term rows of one bucket the slots' maps show, per bucket row; `valid` False until a row's
     episode has been read once (a row that starts an episode is read afresh)."""
