@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from typing import Callable
 
 from dojo.compiler.spec_errors import SpecError, did_you_mean
+from dojo.evaluation.termination import EXIT_CODE as TERMINATED_EXIT
+from dojo.evaluation.termination import Terminated, stop_on_sigterm
 
 
 @dataclass(frozen=True)
@@ -177,11 +179,15 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"dojo: unknown command '{name}'{did_you_mean(name, COMMANDS)}\n\n{_usage()}", file=sys.stderr)
         return 2
+    stop_on_sigterm()
     try:
         return COMMANDS[name].run(rest)
     except SpecError as err:
         print(err, file=sys.stderr)
         return 1
+    except Terminated:
+        print(f"dojo {name}: stopped by SIGTERM", file=sys.stderr)
+        return TERMINATED_EXIT
     except KeyboardInterrupt:
         print(f"dojo {name}: interrupted", file=sys.stderr)
         return 130

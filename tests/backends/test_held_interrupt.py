@@ -66,3 +66,28 @@ def test_off_the_main_thread_or_with_sigint_ignored_the_block_runs_as_it_is() ->
     thread.start()
     thread.join()
     assert seen == [signal.getsignal(signal.SIGINT)]
+
+
+def test_a_sigterm_raised_as_an_interrupt_is_held_to_the_blocks_end_too() -> None:
+    """`dojo` raises SIGTERM as an interrupt (`termination.stop_on_sigterm`); inside a tick it waits like Ctrl-C."""
+    from dojo.evaluation.termination import Terminated, _raise
+
+    before = signal.signal(signal.SIGTERM, _raise)
+    try:
+        ran = []
+        with pytest.raises(Terminated):
+            with interrupts_held():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                ran.append("the rest of the block")
+        assert ran == ["the rest of the block"]
+        assert signal.getsignal(signal.SIGTERM) is _raise
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_a_sigterm_without_a_python_handler_is_left_alone() -> None:
+    before = signal.getsignal(signal.SIGTERM)
+    assert before is signal.SIG_DFL  # pytest's workers leave SIGTERM's default: it would end this process
+    with interrupts_held():
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL

@@ -45,9 +45,9 @@ def test_run_records_every_episode_and_writes_the_report(tmp_path: Path) -> None
     assert "mini_test: 6 plans (6 compiled in" in result.stderr  # the wait for compiling, said
 
 
-def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
-    store = tmp_path / "killed.sqlite"
-    proc = dojo(*BASE, f"results={store}", cwd=tmp_path, background=True)
+def started(store: Path) -> subprocess.Popen:
+    """`dojo run` of BASE in the background, returned once it has stored two episodes (and is still running)."""
+    proc = dojo(*BASE, f"results={store}", cwd=store.parent, background=True)
     deadline = time.monotonic() + 300
     count = 0
     while time.monotonic() < deadline and proc.poll() is None:
@@ -60,7 +60,29 @@ def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
         if count >= 2:
             break
         time.sleep(0.05)
-    assert proc.poll() is None, "the run ended before it could be killed"
+    assert proc.poll() is None, "the run ended before it could be stopped"
+    return proc
+
+
+def test_sigterm_stops_the_run_as_ctrl_c_does_and_it_resumes(tmp_path: Path) -> None:
+    """A scheduler's stop (SIGTERM): the run says why it stopped, exits 143, keeps what ended and resumes."""
+    store = tmp_path / "stopped.sqlite"
+    proc = started(store)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr.decode()
+    assert "dojo run: stopped by SIGTERM" in stderr.decode() and "Traceback" not in stderr.decode()
+    partial = episodes(store)
+    assert 2 <= len(partial) < 6
+    resumed = dojo(*BASE, f"results={store}", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    after = episodes(store)
+    assert len(after) == 6 and all(after[key] == value for key, value in partial.items())
+
+
+def test_kill_9_and_resume_loses_and_repeats_nothing(tmp_path: Path) -> None:
+    store = tmp_path / "killed.sqlite"
+    proc = started(store)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     partial = episodes(store)
