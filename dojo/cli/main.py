@@ -15,7 +15,7 @@ from typing import Callable
 
 from dojo.compiler.spec_errors import SpecError, did_you_mean
 from dojo.evaluation.termination import EXIT_CODE as TERMINATED_EXIT
-from dojo.evaluation.termination import Terminated, stop_on_sigterm
+from dojo.evaluation.termination import Terminated, stopping_on_sigterm
 
 
 @dataclass(frozen=True)
@@ -179,9 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"dojo: unknown command '{name}'{did_you_mean(name, COMMANDS)}\n\n{_usage()}", file=sys.stderr)
         return 2
-    stop_on_sigterm()
     try:
-        return COMMANDS[name].run(rest)
+        with stopping_on_sigterm():
+            return COMMANDS[name].run(rest)
     except SpecError as err:
         print(err, file=sys.stderr)
         return 1

@@ -30,7 +30,7 @@ from typing import Any
 
 from dojo.evaluation.episode import EpisodeResult
 from dojo.evaluation.evaluate import ProgressSink, Stopped
-from dojo.evaluation.termination import stop_on_sigterm
+from dojo.evaluation.termination import stopping_on_sigterm
 
 JOIN_S = 60.0
 """How long a route's process is given to end after it was told to stop before it is terminated."""
@@ -107,9 +107,9 @@ def _route_process(job: Callable[..., int], messages: Any, halt: Any) -> None:
     """A route process's body: `job(halt, progress=...)`, then one last message: done (episodes run), stopped, or
     the error (itself where it pickles, else its text)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # the loop's closing line, as the run's own
-    stop_on_sigterm()  # a SIGTERM to the whole job (a scheduler's) stops this route as it stops the run
-    try:
-        messages.put(("done", job(halt, progress=_Relay(messages))))
+    try:  # a SIGTERM to the whole job (a scheduler's) stops this route as it stops the run
+        with stopping_on_sigterm():
+            messages.put(("done", job(halt, progress=_Relay(messages))))
     except (Stopped, KeyboardInterrupt) as err:  # told to stop, or the run's Ctrl-C reached this process too
         messages.put(("stopped", str(err)))
     except BaseException as err:  # noqa: BLE001 - reported to the run, which raises it

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from types import FrameType
 
 EXIT_CODE = 128 + signal.SIGTERM
@@ -31,9 +33,18 @@ def _raise(signum: int, frame: FrameType | None) -> None:
     raise Terminated()
 
 
-def stop_on_sigterm() -> None:
-    """From now on SIGTERM raises `Terminated` in the main thread, unless the process was given another disposition
-    for it (a parent that ignores or handles SIGTERM keeps its choice) or this is not the main thread (only it can
-    set handlers)."""
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-        signal.signal(signal.SIGTERM, _raise)
+@contextmanager
+def stopping_on_sigterm() -> Iterator[None]:
+    """Within the block SIGTERM raises `Terminated` in the main thread, unless the process was given another
+    disposition for it (a parent that ignores or handles SIGTERM keeps its choice) or this is not the main thread
+    (only it can set handlers). The disposition before is restored after, so that `dojo.cli.main.main` called in
+    a process that goes on (a test's) leaves it as it was."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+    signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)

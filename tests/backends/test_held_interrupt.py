@@ -87,7 +87,9 @@ def test_a_sigterm_raised_as_an_interrupt_is_held_to_the_blocks_end_too() -> Non
 
 
 def test_a_sigterm_without_a_python_handler_is_left_alone() -> None:
-    before = signal.getsignal(signal.SIGTERM)
-    assert before is signal.SIG_DFL  # pytest's workers leave SIGTERM's default: it would end this process
-    with interrupts_held():
-        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    before = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with interrupts_held():
+            assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGTERM, before)
