@@ -49,13 +49,18 @@ def test_a_block_without_sigint_ends_quietly_and_a_handler_of_the_caller_gets_th
     assert got == [signal.SIGINT]
 
 
-def test_off_the_main_thread_or_with_sigint_ignored_the_block_runs_as_it_is() -> None:
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+@pytest.mark.parametrize("signum, disposition", [(signal.SIGINT, signal.SIG_IGN), (signal.SIGTERM, signal.SIG_IGN),
+                                                 (signal.SIGTERM, signal.SIG_DFL)])
+def test_a_signal_without_a_python_handler_is_left_alone(signum, disposition) -> None:
+    before = signal.signal(signum, disposition)
     try:
         with interrupts_held():
-            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            assert signal.getsignal(signum) is disposition
     finally:
-        signal.signal(signal.SIGINT, before)
+        signal.signal(signum, before)
+
+
+def test_off_the_main_thread_the_block_runs_as_it_is() -> None:
     seen = []
 
     def worker() -> None:
@@ -69,7 +74,7 @@ def test_off_the_main_thread_or_with_sigint_ignored_the_block_runs_as_it_is() ->
 
 
 def test_a_sigterm_raised_as_an_interrupt_is_held_to_the_blocks_end_too() -> None:
-    """`dojo` raises SIGTERM as an interrupt (`termination.stop_on_sigterm`); inside a tick it waits like Ctrl-C."""
+    """`dojo` raises SIGTERM as an interrupt (`termination.stopping_on_sigterm`); inside a tick it waits like Ctrl-C."""
     from dojo.evaluation.termination import Terminated, _raise
 
     before = signal.signal(signal.SIGTERM, _raise)
@@ -82,14 +87,5 @@ def test_a_sigterm_raised_as_an_interrupt_is_held_to_the_blocks_end_too() -> Non
                 ran.append("the rest of the block")
         assert ran == ["the rest of the block"]
         assert signal.getsignal(signal.SIGTERM) is _raise
-    finally:
-        signal.signal(signal.SIGTERM, before)
-
-
-def test_a_sigterm_without_a_python_handler_is_left_alone() -> None:
-    before = signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        with interrupts_held():
-            assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     finally:
         signal.signal(signal.SIGTERM, before)
