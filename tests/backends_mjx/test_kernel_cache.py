@@ -82,3 +82,24 @@ def test_dojo_bench_kernels_with_arch_says_so_in_its_figures(tmp_path):
                           env={**os.environ, "WARP_CACHE_PATH": str(tmp_path / "cache")})
     assert done.returncode == 0, done.stderr
     assert '"ahead"' not in done.stdout and '"modules"' in done.stdout
+
+
+def test_what_a_step_compiled_is_the_difference_of_two_readings_of_the_cache(tmp_path, warp_cache, caplog):
+    """`MjxBackend.load` says how many Warp modules its set-up compiled rather than found (`cached_binaries`)."""
+    import logging
+
+    from dojo.backends.mjx.backend import MjxBackend
+    from dojo.backends.mjx.kernel_cache import cached_binaries, compile_ahead
+
+    module = _module(tmp_path, "aot_kernels_c")
+    before = cached_binaries()
+    compile_ahead({(module.name, None): module}, arch=90)
+    (warp_cache / "sources").mkdir()
+    (warp_cache / "sources" / "kernel.cu").write_text("")  # a module's sources and metadata are not a compile
+    [new] = cached_binaries() - before
+    assert new.endswith(".sm90.cubin") and new.startswith(module.get_module_identifier(module.options["block_dim"]))
+    with caplog.at_level(logging.INFO, logger="dojo.backends.mjx.backend"):
+        MjxBackend._say_compiled(3)
+        MjxBackend._say_compiled(0)
+    assert f"Warp compiled 3 module(s) here during set-up, not found in its kernel cache ({warp_cache}" in caplog.text
+    assert f"Warp found every module of the set-up in its kernel cache ({warp_cache})" in caplog.text

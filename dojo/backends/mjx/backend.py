@@ -64,6 +64,7 @@ from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, choose_str
                                      enable_compilation_cache, graph_mode_name, warp_installed)
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
 from dojo.backends.mjx.device_cameras import BucketCameras
+from dojo.backends.mjx.kernel_cache import cached_binaries, kernel_cache_dir
 from dojo.backends.mjx.lanes import BucketPrograms, bucket_programs, select_lanes
 from dojo.backends.mjx.merge_groups import choose_merge, task_groups
 from dojo.backends.mjx.observations import StepObservations
@@ -424,6 +425,7 @@ class MjxBackend(Backend):
         self.close()
         self._engine = None  # the old engine's buffers go before the new one captures (`capture`); its jitted
         gc.collect()         # tick refers back to it, so only the collector frees it
+        cached = cached_binaries() if self.impl == "warp" else None
         start = time.perf_counter()
         self._engine = make_engine(self._buckets, capacity, self.impl, hooks, example, placement=self.placement,
                                    graph_mode=self.graph_mode, streams=self.streams,
@@ -440,6 +442,18 @@ class MjxBackend(Backend):
         start = time.perf_counter()
         self.reset()
         log.info("mjx backend: first tick done (%.1f s)", time.perf_counter() - start)
+        if cached is not None:
+            self._say_compiled(len(cached_binaries() - cached))
+
+    @staticmethod
+    def _say_compiled(count: int) -> None:
+        """How many Warp modules the set-up compiled on this machine rather than found in the kernel cache."""
+        where = kernel_cache_dir()
+        if count:
+            log.info("mjx backend: Warp compiled %d module(s) here during set-up, not found in its kernel cache (%s; "
+                     "`dojo bench kernels ... arch=` compiles them ahead on any machine)", count, where)
+        else:
+            log.info("mjx backend: Warp found every module of the set-up in its kernel cache (%s)", where)
 
     def _row_for(self, s: int, plan: Any) -> tuple[int, int]:
         """The bucket and row slot `s` plays `plan` in: its own row when the plan is of its bucket, else a free one."""

@@ -31,7 +31,10 @@ compiled on an H200 at the start of the protocol's run, 2026-12-03, before it di
 the run's, and so must the plans: a plan is named by its compiler, MuJoCo's version included, and a GPU host with
 MuJoCo 4.0.0 compiled the 4.0.1 plans folder again under new names, which bucketed into 46 where the folder's own
 plans make 47 (2026-12-03); with the same MuJoCo on both, the GPU made the same 47 buckets and compiled 11 modules
-(the 10 broadphase variants and the sparse-solver kernel) where it had compiled 24.
+(the 10 broadphase variants and the sparse-solver kernel) where it had compiled 24. Buckets now follow task,
+setting and seed where plans tie (`Plan.sort_key`), so plans named by another install bucket alike; and with the
+occupancy query recorded, an H200 given the protocol's 148 modules compiled one itself, the sparse-solver kernel
+(2026-12-04, `load 128.5 s`).
 """
 
 from __future__ import annotations
@@ -44,14 +47,32 @@ from typing import Any
 from dojo.backends.mjx.warp_launches import Launches
 
 
+BINARY_SUFFIXES = (".cubin", ".ptx", ".o")
+"""How Warp names a module compiled for a device: `<id>.sm90.cubin`, `<id>.sm90.ptx` (a GPU), `<id>.cpu<hash>.o`."""
+
+
+def kernel_cache_dir() -> str:
+    """Warp's kernel cache folder (`WARP_CACHE_PATH`, else Warp's default), Warp initialised."""
+    import warp as wp
+
+    wp.init()
+    return wp.config.kernel_cache_dir
+
+
+def cached_binaries() -> set[str]:
+    """Every compiled module in Warp's kernel cache, as paths relative to it: the difference of two readings is what
+    was compiled between them. Why: a GPU machine given kernels compiled ahead should compile next to nothing, and
+    whether it did is otherwise visible only as a slow set-up (`MjxBackend.load` says how many)."""
+    root = kernel_cache_dir()
+    return {os.path.relpath(os.path.join(folder, name), root) for folder, _, files in os.walk(root)
+            for name in files if name.endswith(BINARY_SUFFIXES)}
+
+
 def compile_ahead(launches: Launches, arch: int, jobs: int = 1) -> dict[str, Any]:
     """Compile every recorded module variant for `sm_<arch>` into Warp's kernel cache (`WARP_CACHE_PATH`), `jobs` at
     a time (NVRTC lets go of the GIL); return where, how many were compiled or found cached, the seconds, the cache's
     bytes and the slowest compiles."""
-    import warp as wp
-
-    wp.init()
-    cache = wp.config.kernel_cache_dir
+    cache = kernel_cache_dir()
     todo: dict[str, tuple[Any, str, str, int]] = {}
     for (_, block_dim), module in launches.items():
         size = module.options["block_dim"] if block_dim is None else block_dim
