@@ -102,7 +102,7 @@ def test_plans_compiled_by_another_install_pad_and_merge_as_before():
     where plans tie, the grouping must follow task, setting and seed, not the hash. Three plans of one size whose
     clutter overlaps in a chain (1.0+1.1, 1.1+1.2, 1.2+1.3): at growth 0.4 a plan pads with one neighbour (25 DoFs
     against its own 19), never with both (31), so whichever comes first decides the groups."""
-    # a shared scale stands at the same clutter index in both plans: a slot is keyed by the body's name too
+    # a shared scale stands at the same clutter index in both plans: a slot's key holds more than the scale
     plans = [mesh_plan(seed, scales) for seed, scales in enumerate([(1.0, 1.1), (1.2, 1.1), (1.2, 1.3)])]
     renamed = [dataclasses.replace(p, hash=f"{9 - p.seed}-other-install") for p in plans]  # the order reversed
 
