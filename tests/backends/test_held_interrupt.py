@@ -21,8 +21,8 @@ def python_sigint():
     signal.signal(signal.SIGINT, before)
 
 
-def _sigint() -> None:
-    os.kill(os.getpid(), signal.SIGINT)
+def _send(signum: int = signal.SIGINT) -> None:
+    os.kill(os.getpid(), signum)
     time.sleep(0.05)  # Python runs the handler at the next bytecode after the signal lands
 
 
@@ -30,12 +30,12 @@ def test_a_sigint_inside_the_block_is_raised_once_the_block_has_ended(python_sig
     ran = []
     with pytest.raises(KeyboardInterrupt):
         with interrupts_held():
-            _sigint()
+            _send()
             ran.append("the rest of the block")
     assert ran == ["the rest of the block"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     with pytest.raises(KeyboardInterrupt):  # and outside a block, Ctrl-C is Ctrl-C again
-        _sigint()
+        _send()
 
 
 def test_a_block_without_sigint_ends_quietly_and_a_handler_of_the_caller_gets_the_signal(python_sigint) -> None:
@@ -44,7 +44,7 @@ def test_a_block_without_sigint_ends_quietly_and_a_handler_of_the_caller_gets_th
     got = []
     signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
     with interrupts_held():
-        _sigint()
+        _send()
         assert got == []
     assert got == [signal.SIGINT]
 
@@ -82,8 +82,7 @@ def test_a_sigterm_raised_as_an_interrupt_is_held_to_the_blocks_end_too() -> Non
         ran = []
         with pytest.raises(Terminated):
             with interrupts_held():
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.05)
+                _send(signal.SIGTERM)
                 ran.append("the rest of the block")
         assert ran == ["the rest of the block"]
         assert signal.getsignal(signal.SIGTERM) is _raise
