@@ -2,7 +2,7 @@
 
 Versions (RoboDojo, Python, the simulation and learning libraries), the devices found (CPU cores, NVIDIA GPUs,
 the JAX backend, MuJoCo Warp, whether MuJoCo can render headless), and where dojo keeps things (the results
-root, the plan and JAX compilation caches) with their sizes. Every probe that fails says why in its line
+root, the plan, bucket and JAX compilation caches) with their sizes. Every probe that fails says why in its line
 instead of stopping the report: a broken GL or GPU set-up is what a user runs this to find out about.
 """
 
@@ -86,6 +86,7 @@ def _folder(path: Path) -> dict[str, Any]:
 
 def facts() -> dict[str, Any]:
     """Everything the report shows, as plain data (`--format json`)."""
+    from dojo.backends.mjx.bucket_cache import cache_dir as bucket_cache_dir
     from dojo.backends.mjx.cache import DEFAULT_CACHE_DIR
     from dojo.evaluation.results_store import STORE_FILENAME
     from dojo.cli.run_cmd import DEFAULT_PLAN_CACHE
@@ -99,7 +100,8 @@ def facts() -> dict[str, Any]:
                     "rendering": _probe(_render)},
         "folders": {"results_root": {**_folder(root), "runs": len(list(root.rglob(STORE_FILENAME))) if root.is_dir()
                                      else 0},
-                    "plan_cache": _folder(DEFAULT_PLAN_CACHE), "jax_cache": _folder(DEFAULT_CACHE_DIR)},
+                    "plan_cache": _folder(DEFAULT_PLAN_CACHE), "bucket_cache": _folder(bucket_cache_dir()),
+                    "jax_cache": _folder(DEFAULT_CACHE_DIR)},
     }
 
 

@@ -180,7 +180,8 @@ def test_an_unknown_routes_setting_stops_the_run_before_it_starts(tmp_path: Path
 def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
     result = subprocess.run([sys.executable, "-m", "dojo.cli.main", "doctor", "--format", "json"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=120,
-                            env={**os.environ, "DOJO_OUTPUTS": str(tmp_path / "results")})
+                            env={**os.environ, "DOJO_OUTPUTS": str(tmp_path / "results"),
+                                 "DOJO_BUCKET_CACHE": str(tmp_path / "buckets")})
     assert result.returncode == 0, result.stderr
     facts = json.loads(result.stdout)
     assert facts["versions"]["robodojo"] and facts["versions"]["mujoco"] and facts["versions"]["jax"]
@@ -189,6 +190,7 @@ def test_doctor_reports_versions_devices_and_folders(tmp_path: Path) -> None:
     assert set(facts["devices"]) == {"gpus", "jax_backend", "mujoco_warp", "rendering"}
     assert facts["folders"]["results_root"] == {"path": str(tmp_path / "results"), "exists": False, "bytes": 0,
                                                 "runs": 0}
+    assert facts["folders"]["bucket_cache"] == {"path": str(tmp_path / "buckets"), "exists": False, "bytes": 0}
     # The text form renders these same facts (the README's quick start runs `dojo doctor` itself).
     text = render_text(facts)
     assert "results_root" in text and "plan_cache" in text and f"{tmp_path / 'results'} (not created yet)" in text

@@ -2,10 +2,11 @@
 computed on the device inside the one jitted tick.
 
 Slots and rows. `load(plans)` groups the plans into buckets (`make_buckets`, over every plan the backend knows:
-those given to `preload` and to `load`) and gives each bucket one row per slot that starts in it. A slot is a
-(bucket, row) pair; refilling it with a plan of the same bucket only changes the row's member index, and with a
-plan of another bucket it moves to a row of that bucket that no slot uses. Neither recompiles. A plan the
-backend has never seen, or a bucket without a free row, is an error that names the fix (`preload` the queue).
+those given to `preload` and to `load`; read from `bucket_cache` where a run bucketed the same plans before) and
+gives each bucket one row per slot that starts in it. A slot is a (bucket, row) pair; refilling it with a plan of
+the same bucket only changes the row's member index, and with a plan of another bucket it moves to a row of that
+bucket that no slot uses. Neither recompiles. A plan the backend has never seen, or a bucket without a free row, is
+an error that names the fix (`preload` the queue).
 
 Per tick and bucket, traced once: actions in every mode (a per-env mode id picks `joint`, `delta_joint`, `ee` or
 `delta_ee`, so one program serves all four) become actuator controls with `dojo.backends.actions`; the ee modes
@@ -59,7 +60,8 @@ from dojo.backends.predicates import pool_contact_matrix
 from dojo.backends.program_types import ProgramLayout
 from dojo.backends.rotations import mat_to_quat
 from dojo.backends.mjx.batch import BucketArrays, Engine, EngineGroups, Hooks, Tree, make_engine
-from dojo.backends.mjx.bucket import Bucket, make_buckets
+from dojo.backends.mjx.bucket import Bucket
+from dojo.backends.mjx.bucket_cache import cached_buckets
 from dojo.backends.mjx.cache import (DEFAULT_GRAPH_MODE, choose_impl, choose_streams, describe_impl,
                                      enable_compilation_cache, graph_mode_name, warp_installed)
 from dojo.backends.mjx.cache import graph_mode as graph_mode_of
@@ -394,11 +396,11 @@ class MjxBackend(Backend):
             log.info("mjx backend: buckets %s (backend.merge=%s)",
                      f"merged across tasks, growth {growth:g}" if self.merged else "not merged across tasks",
                      why if self.merge == "auto" else str(self.merge).lower())
-        self._buckets = make_buckets(list(self._known.values()), merge=self.merged, growth=growth)
+        self._buckets, entry = cached_buckets(list(self._known.values()), self.merged, growth)
         # Set-up can take minutes (a compile per bucket structure): say where it stands before each long step.
-        log.info("mjx backend: %d plan(s) in %d bucket(s), largest nv %d (%.1f s); building the engine",
+        log.info("mjx backend: %d plan(s) in %d bucket(s), largest nv %d (%.1f s%s); building the engine",
                  len(self._known), len(self._buckets), max(b.model.nv for b in self._buckets),
-                 time.perf_counter() - start)
+                 time.perf_counter() - start, f", as bucketed before: {entry}" if entry else "")
         self._member = {m.plan.hash: (k, i) for k, b in enumerate(self._buckets) for i, m in enumerate(b.members)}
         self._stage_layouts = {}
         self._layouts = {m.plan.hash: PlanLayout.build(m.model, m.plan.model(), m.padded.names)

@@ -166,7 +166,7 @@ _QPOS_WIDTH = {0: 7, 1: 4, 2: 1, 3: 1}
 _QVEL_WIDTH = {0: 6, 1: 3, 2: 1, 3: 1}
 
 
-def _varying(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
+def varying_fields(models: Sequence[mujoco.MjModel]) -> tuple[str, ...]:
     """The value fields whose contents differ between the models (the bucket's per-member table). Compared as
     bytes: a field that holds for thousands of members is read once per member, and `np.array_equal` cost 3.6x as
     much (0.86 against 0.24 ms a member on the CI machine). Bit for bit, so a field whose values differ only in a
@@ -186,7 +186,7 @@ def _digest(xml: str) -> bytes:
     return hashlib.sha256(xml.encode()).digest()
 
 
-def _compiled(xml: str) -> tuple[mujoco.MjModel, str, bytes]:
+def compile_padded(xml: str) -> tuple[mujoco.MjModel, str, bytes]:
     """The model of a padded MJCF, its `structural_signature` and the MJCF's `_digest`."""
     model = mujoco.MjModel.from_xml_string(xml)
     return model, structural_signature(model), _digest(xml)
@@ -244,8 +244,8 @@ class Compiler:
     another (2026-11-28), before the hashing moved onto the threads. One pool serves the whole call and the caller
     pads the next plans while it compiles: with a pool per padded group, groups of one plan (326 of the 505 padded
     in the suite's merge) compiled on the calling thread, and nothing was padded while a group compiled.
-    The plans' own models compile on a thread of their own because `Plan.model` is a `functools.cached_property`,
-    whose lock (Python 3.11) is one for every plan: they compile one at a time however many threads ask.
+    The plans' own models compile on a thread of their own, behind none of the padded MJCF that the caller waits
+    for.
 
     Once: of the 3,817 padded MJCF that the suite's merge compiled (1,150 plans of seed 0, 2026-12-03), 388
     repeated one compiled earlier in the same call: plans that padding makes identical, and pair checks
@@ -273,7 +273,7 @@ class Compiler:
         jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]] = {}
         for pp in padded:
             if pp.xml not in jobs:
-                jobs[pp.xml] = self._pool.submit(_compiled, pp.xml)
+                jobs[pp.xml] = self._pool.submit(compile_padded, pp.xml)
         return Compiling(padded, jobs, self._signatures)
 
     def signatures(self, padded: Sequence[PaddedPlan]) -> Callable[[], list[str]]:
@@ -292,7 +292,7 @@ class Compiler:
         return wait
 
 
-def _members(compiled: Compiled) -> list[Member]:
+def bucket_members(compiled: Compiled) -> list[Member]:
     """The padded plans as members: their models and initial states in the padded layout."""
     return [Member(pp, model, *_initial_state(pp, model)) for pp, model in compiled]
 
@@ -369,9 +369,10 @@ def _merged(by_task: dict[str, list[Plan]], robot: str, growth: float,
     for c, compiling in zip(clusters, merging):
         if compiling is None:
             signature, compiled = alone[c[0].key]
-            out.append((signature, _members(compiled)))
+            out.append((signature, bucket_members(compiled)))
         else:
-            out.extend((signature, _members(compiled)) for signature, compiled in compiling.by_signature().items())
+            out.extend((signature, bucket_members(compiled))
+                       for signature, compiled in compiling.by_signature().items())
     return out
 
 
@@ -402,5 +403,5 @@ def make_buckets(plans: Sequence[Plan], merge: bool = False, growth: float = GRO
                          for found in _task_groups(by_group[name, setting, substeps][name], name, growth, compiler)]
             for name, found in compiling:
                 for signature, compiled in found.by_signature().items():
-                    groups[f"{name}:{signature[:16]}"] += _members(compiled)
-    return [Bucket(key, members, _varying([m.model for m in members])) for key, members in sorted(groups.items())]
+                    groups[f"{name}:{signature[:16]}"] += bucket_members(compiled)
+    return [Bucket(key, members, varying_fields([m.model for m in members])) for key, members in sorted(groups.items())]
