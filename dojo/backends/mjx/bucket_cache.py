@@ -1,12 +1,12 @@
 """Buckets kept across runs: what `make_buckets` found for a set of plans, stored so that the next run over the same
 plans compiles their padded models instead of bucketing them again.
 
-Why: bucketing is most of a GPU run's set-up that no kernel or XLA cache serves. The protocol's 850 mjx plans took
-30-34 s to bucket on the H200 host at every run (2026-12-04, session 66) and 40 s on the 2-core CI machine, most of it
-padding MJCF in Python and compiling the 3,800 paddings that the merge tries; the buckets it settles on are 850
-padded MJCF, which compile again in 10 s on two threads. An entry is those MJCF with their names, parked slots and
-slot keys (0.9 MB as JSON under xz for the protocol), never a pickle or a binary model: the cache folder is read as
-data.
+Why: bucketing was the part of a GPU run's set-up that no kernel or XLA cache served. The protocol's 850 mjx
+plans took 30-34 s to bucket on the H200 host at every run (2026-12-04, session 66) and 40 s on the 2-core CI
+machine, most of it padding MJCF in Python and compiling the 3,800 paddings that the merge tries; the buckets it
+settles on are 850 padded MJCF, which compile again in 10 s on two threads. An entry is those MJCF with their
+names, parked slots and slot keys (0.9 MB as JSON under xz for the protocol), never a pickle or a binary model: the
+cache folder is read as data.
 
 An entry is found by everything bucketing depends on (`entry_key`): every plan (its hash, scene and objects), the
 merge and its growth, MuJoCo's and MJX's versions and the source of the `dojo` package, so any change to the code
