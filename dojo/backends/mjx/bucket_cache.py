@@ -16,6 +16,7 @@ structure its key names. An entry that fails is logged, removed, and the plans a
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -88,7 +89,8 @@ def cached_buckets(plans: Sequence[Plan], merge: bool, growth: float,
                         type(err).__name__, err)
             path.unlink(missing_ok=True)
         else:
-            os.utime(path)
+            with contextlib.suppress(OSError):  # another process may have pruned it meanwhile
+                os.utime(path)
             return buckets, path
     buckets = make_buckets(plans, merge=merge, growth=growth)
     try:
@@ -112,8 +114,16 @@ def _write(path: Path, buckets: Sequence[Bucket]) -> None:
         os.replace(scratch, path)
     finally:
         Path(scratch).unlink(missing_ok=True)
-    entries = sorted(path.parent.glob("*.json.xz"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in entries[KEPT_ENTRIES:]:
+    _prune(path.parent)
+
+
+def _prune(folder: Path) -> None:
+    """Keep the `KEPT_ENTRIES` most recently used entries; runs beside this one may be reading or pruning too."""
+    used: list[tuple[float, Path]] = []
+    for entry in folder.glob("*.json.xz"):
+        with contextlib.suppress(FileNotFoundError):
+            used.append((entry.stat().st_mtime, entry))
+    for _, old in sorted(used, reverse=True)[KEPT_ENTRIES:]:
         old.unlink(missing_ok=True)
 
 
