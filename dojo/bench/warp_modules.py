@@ -96,7 +96,7 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     time), on this machine, GPU or not."""
     from importlib.metadata import version
 
-    from dojo.backends.mjx.bucket import make_buckets
+    from dojo.backends.mjx.bucket_cache import cached_buckets
     from dojo.backends.mjx.dof_rounding import round_bucket
     from dojo.backends.mjx import merge_settings
     from dojo.backends.mjx.merge_groups import choose_merge, task_groups
@@ -115,7 +115,7 @@ def bench_kernels(cfg: dict[str, Any]) -> dict[str, Any]:
     slots = min(int(cfg.get("num_envs") or len(plans)), len(plans))
     merge, growth, _ = choose_merge(*merge_settings(backend), True, slots, task_groups(plans))
     quantum = int(cfg.get("dof_quantum") or 1)
-    buckets = [round_bucket(b, quantum) for b in make_buckets(plans, merge=merge, growth=growth)]
+    buckets = [round_bucket(b, quantum) for b in cached_buckets(plans, merge, growth)[0]]
     # and size their lanes as its backend does on one GPU (`MjxBackend.load`)
     sizes = [bucket_rows(slots, len(b.members)) for b in buckets]
     log.info("%d plans in %d buckets", len(plans), len(buckets))

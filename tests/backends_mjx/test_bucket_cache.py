@@ -9,6 +9,7 @@ import logging
 import lzma
 import math
 import os
+import random
 from pathlib import Path
 
 import pytest
@@ -42,20 +43,21 @@ def _entries(folder: Path) -> list[Path]:
 
 @pytest.mark.parametrize("merge", [False, True])
 def test_a_second_run_reads_the_buckets_back_bit_for_bit(tmp_path, merge):
-    """The first call buckets and stores one entry; a second, with the plans loaded again, reads it, and its
-    buckets are the plain `make_buckets` ones: keys, varying fields, members, paddings, initial states, models."""
+    """The first call buckets and stores one entry; a second, with the plans loaded again and listed in another
+    order, reads it, and its buckets are the plain `make_buckets` ones of the plans in `Plan.sort_key` order: keys,
+    varying fields, members, paddings, initial states, models."""
     plans = _plans()
     made, entry = cached_buckets(plans, merge, math.inf, tmp_path)
     assert entry is None and len(_entries(tmp_path)) == 1
-    again, entry = cached_buckets(_fresh(plans), merge, math.inf, tmp_path)
+    again, entry = cached_buckets(random.Random(0).sample(_fresh(plans), len(plans)), merge, math.inf, tmp_path)
     assert entry == _entries(tmp_path)[0]
-    assert _fingerprint(again) == _fingerprint(made) == _fingerprint(make_buckets(_fresh(plans), merge, math.inf))
-    assert all(m.plan.model() is not None for b in again for m in b.members)
+    in_order = sorted(_fresh(plans), key=lambda plan: plan.sort_key)
+    assert _fingerprint(again) == _fingerprint(made) == _fingerprint(make_buckets(in_order, merge, math.inf))
 
 
 def test_an_entry_is_found_only_by_the_same_plans_settings_and_code(monkeypatch):
-    """Everything that bucketing reads names the entry: the merge and its growth, each plan (its order too) and its
-    MJCF, and the package's source."""
+    """Everything that bucketing reads names the entry: the merge and its growth, each plan (in the order given:
+    `cached_buckets` sorts them first) and its MJCF, and the package's source."""
     plans = _plans()
     key = entry_key(plans, True, 1.0)
     assert entry_key(_fresh(plans), True, 1.0) == key

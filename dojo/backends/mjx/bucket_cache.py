@@ -62,7 +62,8 @@ def code_digest() -> str:
 
 
 def entry_key(plans: Sequence[Plan], merge: bool, growth: float) -> str:
-    """The name of the entry for these plans, in this order, bucketed with `merge` and `growth`."""
+    """The name of the entry for these plans, in this order (`cached_buckets` sorts them first), bucketed with
+    `merge` and `growth`."""
     h = hashlib.sha256()
     h.update(json.dumps([FORMAT, code_digest(), mujoco.__version__, version("mujoco-mjx"), bool(merge),
                          repr(float(growth))]).encode())
@@ -75,10 +76,16 @@ def entry_key(plans: Sequence[Plan], merge: bool, growth: float) -> str:
 
 def cached_buckets(plans: Sequence[Plan], merge: bool, growth: float,
                    folder: Path | None = None) -> tuple[list[Bucket], Path | None]:
-    """`make_buckets(plans, merge, growth)`, read from the cache folder where an entry for them is there and sound,
-    else made and stored. Returns the buckets and the entry they were read from (None when bucketed here)."""
+    """`make_buckets(plans, merge, growth)` over the plans in `Plan.sort_key` order, read from the cache folder
+    where an entry for them is there and sound, else made and stored. Returns the buckets and the entry they were
+    read from (None when bucketed here).
+
+    In that order, whichever order the caller lists the plans in: which plans share a bucket does not depend on it
+    (`make_buckets`), only the members' order within one, and so `dojo bench kernels` on a CPU node and `dojo run`
+    on the GPU find one entry for the same plans (a folder carried along with the kernels, as `DOJO_BUCKET_CACHE`)."""
     if len({plan.hash for plan in plans}) != len(plans):  # an entry names its members by plan hash
         return make_buckets(plans, merge=merge, growth=growth), None
+    plans = sorted(plans, key=lambda plan: plan.sort_key)
     folder = cache_dir() if folder is None else folder
     path = folder / f"{entry_key(plans, merge, growth)}.json.xz"
     if path.exists():
