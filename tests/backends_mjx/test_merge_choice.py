@@ -53,7 +53,7 @@ def test_load_buckets_the_plans_as_auto_decides_and_says_why(monkeypatch, caplog
         asked.append((len(plans), merge, growth))
         raise InterruptedError  # the decision is what is tested: no engine is built
 
-    monkeypatch.setattr(backend_module, "make_buckets", bucketing)
+    monkeypatch.setattr(backend_module, "cached_buckets", bucketing)
     backend = MjxBackend(impl="jax", merge="auto")
     backend.streams = streams  # as `choose_streams` leaves it for MuJoCo Warp on a GPU, or off one
     plans = [toy_plan(task=task, seed=0) for task in ("toy", "pair", "twin")]
