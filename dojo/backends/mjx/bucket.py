@@ -20,9 +20,9 @@ import hashlib
 import os
 import typing
 from collections import defaultdict
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import mujoco
 import numpy as np
@@ -192,6 +192,15 @@ def compile_padded(xml: str) -> tuple[mujoco.MjModel, str, bytes]:
     return model, structural_signature(model), _digest(xml)
 
 
+def compile_jobs(pool: Executor, padded: Iterable[PaddedPlan]) -> dict[str, Future[tuple[mujoco.MjModel, str, bytes]]]:
+    """One `compile_padded` job on `pool` per distinct MJCF of `padded`, by its text."""
+    jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]] = {}
+    for pp in padded:
+        if pp.xml not in jobs:
+            jobs[pp.xml] = pool.submit(compile_padded, pp.xml)
+    return jobs
+
+
 def _signature(xml: str) -> str:
     """The `structural_signature` of a padded MJCF, its model dropped at once: the signature is all a pair check or
     the split of a task's plans into units needs, and a model takes megabytes (a suite plan's textures 1.6 MB)."""
@@ -270,11 +279,7 @@ class Compiler:
 
     def models(self, padded: Sequence[PaddedPlan]) -> Compiling:
         """Start compiling the padded plans' models."""
-        jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]] = {}
-        for pp in padded:
-            if pp.xml not in jobs:
-                jobs[pp.xml] = self._pool.submit(compile_padded, pp.xml)
-        return Compiling(padded, jobs, self._signatures)
+        return Compiling(padded, compile_jobs(self._pool, padded), self._signatures)
 
     def signatures(self, padded: Sequence[PaddedPlan]) -> Callable[[], list[str]]:
         """Start finding the padded plans' structural signatures; the function returned waits for them, in order."""

@@ -25,7 +25,7 @@ import lzma
 import os
 import tempfile
 from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from importlib.metadata import version
 from pathlib import Path
 
@@ -34,7 +34,7 @@ import mujoco
 import dojo
 from dojo.compiler.plan import Plan
 
-from dojo.backends.mjx.bucket import Bucket, Compiling, bucket_members, compile_padded, make_buckets, varying_fields
+from dojo.backends.mjx.bucket import Bucket, Compiling, bucket_members, compile_jobs, make_buckets, varying_fields
 from dojo.backends.mjx.pad import PaddedPlan
 
 log = logging.getLogger(__name__)
@@ -147,11 +147,7 @@ def _read(path: Path, plans: Sequence[Plan]) -> list[Bucket]:
     if listed != sorted(by_hash):
         raise ValueError("it does not list every plan once")
     with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-        jobs: dict[str, Future[tuple[mujoco.MjModel, str, bytes]]] = {}
-        for _, members in padded:
-            for pp in members:
-                if pp.xml not in jobs:
-                    jobs[pp.xml] = pool.submit(compile_padded, pp.xml)
+        jobs = compile_jobs(pool, (pp for _, members in padded for pp in members))
         sources = [pool.submit(plan.model) for plan in plans]
         found = [(key, members, Compiling(members, jobs, {}).result()) for key, members in padded]
         for job in sources:
